@@ -1,0 +1,207 @@
+//! A small planar-free RGB float image type used by the vision layer, and
+//! area-averaging resampling for the scale pyramid.
+
+use super::VisionError;
+
+/// Number of colour channels of [`ColorImage`].
+pub const CHANNELS: usize = 3;
+
+/// An interleaved RGB image with `f32` samples in `[0, 255]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColorImage {
+    width: usize,
+    height: usize,
+    data: Vec<f32>,
+}
+
+impl ColorImage {
+    /// Builds an image from interleaved RGB samples.
+    pub fn new(width: usize, height: usize, data: Vec<f32>) -> Result<Self, VisionError> {
+        if width == 0 || height == 0 {
+            return Err(VisionError::EmptyImage { width, height });
+        }
+        let expected = width
+            .checked_mul(height)
+            .and_then(|n| n.checked_mul(CHANNELS))
+            .ok_or(VisionError::ImageTooLarge { width, height })?;
+        if data.len() != expected {
+            return Err(VisionError::BufferSize {
+                expected,
+                actual: data.len(),
+            });
+        }
+        if data.iter().any(|v| !v.is_finite()) {
+            return Err(VisionError::NonFinite("image samples"));
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// Converts an 8-bit RGB image.
+    pub fn from_rgb8(img: &image::RgbImage) -> Result<Self, VisionError> {
+        let (w, h) = img.dimensions();
+        let data = img.as_raw().iter().map(|&v| f32::from(v)).collect();
+        Self::new(w as usize, h as usize, data)
+    }
+
+    /// Converts back to 8-bit RGB (rounded and clamped).
+    pub fn to_rgb8(&self) -> image::RgbImage {
+        let raw: Vec<u8> = self
+            .data
+            .iter()
+            .map(|v| v.round().clamp(0.0, 255.0) as u8)
+            .collect();
+        // The buffer length is width*height*3 by construction.
+        image::RgbImage::from_raw(self.width as u32, self.height as u32, raw)
+            .unwrap_or_else(|| image::RgbImage::new(self.width as u32, self.height as u32))
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Interleaved samples, row-major, `CHANNELS` per pixel.
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+
+    /// The sample of channel `c` at `(x, y)`.
+    #[inline]
+    pub fn get(&self, x: usize, y: usize, c: usize) -> f32 {
+        self.data[(y * self.width + x) * CHANNELS + c]
+    }
+
+    /// Resizes by area averaging to `new_w x new_h`: every output pixel is the
+    /// exact mean of the input area it covers (an anti-aliased downscale, and a
+    /// bilinear-like box upscale). Resizing to the same size is the identity.
+    pub fn resize_area(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
+        if new_w == 0 || new_h == 0 {
+            return Err(VisionError::EmptyImage {
+                width: new_w,
+                height: new_h,
+            });
+        }
+        if new_w == self.width && new_h == self.height {
+            return Ok(self.clone());
+        }
+        let wx = area_weights(self.width, new_w);
+        let wy = area_weights(self.height, new_h);
+        // Horizontal pass: height x new_w.
+        let mut tmp = vec![0.0f32; self.height * new_w * CHANNELS];
+        for y in 0..self.height {
+            let src = &self.data[y * self.width * CHANNELS..(y + 1) * self.width * CHANNELS];
+            let dst = &mut tmp[y * new_w * CHANNELS..(y + 1) * new_w * CHANNELS];
+            for (ox, taps) in wx.iter().enumerate() {
+                let mut acc = [0.0f32; CHANNELS];
+                for &(ix, w) in taps {
+                    for (c, a) in acc.iter_mut().enumerate() {
+                        *a += w * src[ix * CHANNELS + c];
+                    }
+                }
+                dst[ox * CHANNELS..ox * CHANNELS + CHANNELS].copy_from_slice(&acc);
+            }
+        }
+        // Vertical pass.
+        let row = new_w * CHANNELS;
+        let mut out = vec![0.0f32; new_h * row];
+        for (oy, taps) in wy.iter().enumerate() {
+            let dst = &mut out[oy * row..(oy + 1) * row];
+            for &(iy, w) in taps {
+                let src = &tmp[iy * row..(iy + 1) * row];
+                for (d, s) in dst.iter_mut().zip(src) {
+                    *d += w * s;
+                }
+            }
+        }
+        Ok(Self {
+            width: new_w,
+            height: new_h,
+            data: out,
+        })
+    }
+}
+
+/// For each output coordinate, the input coordinates it overlaps and the
+/// normalised overlap weights.
+fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
+    let scale = src as f64 / dst as f64;
+    (0..dst)
+        .map(|o| {
+            let a = o as f64 * scale;
+            let b = (o as f64 + 1.0) * scale;
+            let mut taps = Vec::new();
+            let first = a.floor() as usize;
+            let last = (b.ceil() as usize).min(src);
+            let mut total = 0.0;
+            for i in first..last {
+                let lo = a.max(i as f64);
+                let hi = b.min(i as f64 + 1.0);
+                if hi > lo {
+                    taps.push((i, hi - lo));
+                    total += hi - lo;
+                }
+            }
+            if taps.is_empty() {
+                // Upscaling with a footprint inside one pixel.
+                taps.push((first.min(src - 1), 1.0));
+                total = 1.0;
+            }
+            taps.into_iter()
+                .map(|(i, w)| (i, (w / total) as f32))
+                .collect()
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(w: usize, h: usize) -> ColorImage {
+        let mut d = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                d.extend_from_slice(&[x as f32, y as f32, 7.0]);
+            }
+        }
+        ColorImage::new(w, h, d).unwrap()
+    }
+
+    #[test]
+    fn rejects_empty_and_mismatched() {
+        assert!(matches!(
+            ColorImage::new(0, 5, vec![]),
+            Err(VisionError::EmptyImage { .. })
+        ));
+        assert!(matches!(
+            ColorImage::new(2, 2, vec![0.0; 5]),
+            Err(VisionError::BufferSize { .. })
+        ));
+        assert!(matches!(
+            ColorImage::new(1, 1, vec![0.0, f32::NAN, 0.0]),
+            Err(VisionError::NonFinite(_))
+        ));
+    }
+
+    #[test]
+    fn resize_identity_and_mean_preserving() {
+        let img = ramp(16, 12);
+        assert_eq!(img.resize_area(16, 12).unwrap(), img);
+        let half = img.resize_area(8, 6).unwrap();
+        // Each output pixel is the mean of a 2x2 block.
+        assert!((half.get(0, 0, 0) - 0.5).abs() < 1e-5);
+        assert!((half.get(3, 2, 1) - 4.5).abs() < 1e-5);
+        assert!((half.get(5, 5, 2) - 7.0).abs() < 1e-5);
+        let mean_in: f32 = img.data().iter().step_by(3).sum::<f32>() / (16.0 * 12.0);
+        let odd = img.resize_area(5, 7).unwrap();
+        let mean_out: f32 = odd.data().iter().step_by(3).sum::<f32>() / 35.0;
+        assert!((mean_in - mean_out).abs() < 1e-3);
+    }
+}
