@@ -2,10 +2,13 @@
 //! SD-HOP energy and detection. Pure functions on plain data; this layer
 //! imports no async runtime, web framework or GPU API.
 
+pub mod detect;
 pub mod energy;
 pub mod hog;
 pub mod image;
+pub mod mask;
 pub mod maxflow;
+pub mod pyramid;
 pub mod rng;
 pub mod segment;
 

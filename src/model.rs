@@ -1,0 +1,377 @@
+//! The trained-weights file: safetensors tensors plus JSON metadata, read by
+//! the server and written by the trainer.
+//!
+//! Tensors, for viewpoint `a` (all `F32`):
+//! `view{a}.w_vis` `[rows, cols, 31]`, `view{a}.w_occ` `[rows, cols, 31]`,
+//! `view{a}.w_prior` `[rows, cols]`, `view{a}.w_hop` `[K + 1]`,
+//! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`.
+//! The safetensors metadata holds one key, `sdhop`, whose value is the JSON
+//! of [`ModelMeta`].
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::vision::detect::DetectParams;
+use crate::vision::energy::ViewWeights;
+use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use crate::vision::pyramid::PyramidParams;
+use crate::vision::segment::SegmentParams;
+use crate::vision::VisionError;
+
+/// Version of the weights format this build reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+/// Metadata key of the JSON description.
+pub const META_KEY: &str = "sdhop";
+/// Largest template side in cells a file may declare.
+pub const MAX_TEMPLATE_CELLS: usize = 256;
+
+/// Errors reading or writing a weights file.
+#[derive(Debug, Error)]
+pub enum ModelError {
+    #[error("cannot read or write {path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("not a valid safetensors file: {0}")]
+    Format(String),
+    #[error("missing metadata key `{META_KEY}`")]
+    MissingMeta,
+    #[error("bad metadata: {0}")]
+    Meta(String),
+    #[error("unsupported format version {found} (this build reads {FORMAT_VERSION})")]
+    Version { found: u32 },
+    #[error("missing tensor `{0}`")]
+    MissingTensor(String),
+    #[error("tensor `{name}` has dtype {dtype} and shape {shape:?}, expected F32 {expected:?}")]
+    Shape {
+        name: String,
+        dtype: String,
+        shape: Vec<usize>,
+        expected: Vec<usize>,
+    },
+    #[error("inconsistent model: {0}")]
+    Invalid(String),
+    #[error("invalid weights: {0}")]
+    Weights(#[from] VisionError),
+}
+
+/// A viewpoint's description.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewMeta {
+    /// Object label of this component (several objects can share a model).
+    pub label: String,
+    /// Template height in cells.
+    pub rows: usize,
+    /// Template width in cells.
+    pub cols: usize,
+}
+
+/// JSON metadata of a weights file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelMeta {
+    pub format_version: u32,
+    /// Model name (by convention the file stem).
+    pub name: String,
+    pub cell_size: usize,
+    /// Standard clique size `K` of the higher-order potentials.
+    pub hop_k: usize,
+    pub pyramid: PyramidParams,
+    pub segmentation: SegmentParams,
+    /// Default detection settings (threshold, NMS, truncation, refinement).
+    pub detection: DetectParams,
+    pub viewpoints: Vec<ViewMeta>,
+    /// Free-form provenance: how the weights were made, settings, figures.
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+}
+
+/// A model: metadata and one weight set per viewpoint.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Model {
+    pub meta: ModelMeta,
+    pub views: Vec<ViewWeights>,
+}
+
+fn f32_bytes(v: impl Iterator<Item = f32>) -> Vec<u8> {
+    v.flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn strip(padded: &[f32]) -> impl Iterator<Item = f32> + '_ {
+    padded.chunks(HOG_STRIDE).flat_map(|c| c[..HOG_DIM].iter().copied())
+}
+
+impl Model {
+    /// Builds a model and checks it.
+    pub fn new(meta: ModelMeta, views: Vec<ViewWeights>) -> Result<Self, ModelError> {
+        let m = Self { meta, views };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// Distinct object labels, in viewpoint order.
+    pub fn labels(&self) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for v in &self.meta.viewpoints {
+            if !out.contains(&v.label) {
+                out.push(v.label.clone());
+            }
+        }
+        out
+    }
+
+    /// Checks the metadata against the weights and the weights themselves.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let m = &self.meta;
+        if m.format_version != FORMAT_VERSION {
+            return Err(ModelError::Version {
+                found: m.format_version,
+            });
+        }
+        if m.cell_size != CELL_SIZE {
+            return Err(ModelError::Invalid(format!(
+                "cell size {} (this build computes {CELL_SIZE}-pixel cells)",
+                m.cell_size
+            )));
+        }
+        if m.hop_k == 0 || m.hop_k > 64 {
+            return Err(ModelError::Invalid(format!("K = {} out of range 1..=64", m.hop_k)));
+        }
+        if m.viewpoints.is_empty() || m.viewpoints.len() != self.views.len() {
+            return Err(ModelError::Invalid(format!(
+                "{} viewpoints described, {} weight sets",
+                m.viewpoints.len(),
+                self.views.len()
+            )));
+        }
+        if m.name.is_empty() {
+            return Err(ModelError::Invalid("empty model name".into()));
+        }
+        for (a, (vm, w)) in m.viewpoints.iter().zip(&self.views).enumerate() {
+            if vm.rows == 0
+                || vm.cols == 0
+                || vm.rows > MAX_TEMPLATE_CELLS
+                || vm.cols > MAX_TEMPLATE_CELLS
+            {
+                return Err(ModelError::Invalid(format!(
+                    "viewpoint {a}: template {}x{} cells out of range",
+                    vm.rows, vm.cols
+                )));
+            }
+            if (vm.rows, vm.cols) != (w.rows, w.cols) || w.w_hop.len() != m.hop_k + 1 {
+                return Err(ModelError::Invalid(format!(
+                    "viewpoint {a}: metadata and weights disagree"
+                )));
+            }
+            w.validate()?;
+        }
+        m.pyramid.validate()?;
+        m.segmentation.validate()?;
+        m.detection.validate()?;
+        Ok(())
+    }
+
+    /// Serialises to safetensors bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, ModelError> {
+        self.validate()?;
+        let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+        for (a, w) in self.views.iter().enumerate() {
+            let (r, c) = (w.rows, w.cols);
+            buffers.push((format!("view{a}.w_vis"), vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_vis))));
+            buffers.push((format!("view{a}.w_occ"), vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_occ))));
+            buffers.push((format!("view{a}.w_prior"), vec![r, c], f32_bytes(w.w_prior.iter().copied())));
+            buffers.push((format!("view{a}.w_hop"), vec![w.w_hop.len()], f32_bytes(w.w_hop.iter().copied())));
+            buffers.push((
+                format!("view{a}.scalars"),
+                vec![3],
+                f32_bytes([w.w_trunc, w.w_pair, w.bias].into_iter()),
+            ));
+        }
+        let views: Vec<(String, TensorView<'_>)> = buffers
+            .iter()
+            .map(|(name, shape, data)| {
+                TensorView::new(Dtype::F32, shape.clone(), data)
+                    .map(|t| (name.clone(), t))
+                    .map_err(|e| ModelError::Format(e.to_string()))
+            })
+            .collect::<Result<_, _>>()?;
+        let meta = serde_json::to_string(&self.meta).map_err(|e| ModelError::Meta(e.to_string()))?;
+        let info = HashMap::from([(META_KEY.to_string(), meta)]);
+        safetensors::serialize(views, Some(info)).map_err(|e| ModelError::Format(e.to_string()))
+    }
+
+    /// Parses safetensors bytes; every inconsistency is an error.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, ModelError> {
+        let (_, header) =
+            SafeTensors::read_metadata(bytes).map_err(|e| ModelError::Format(e.to_string()))?;
+        let meta_json = header
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(META_KEY))
+            .ok_or(ModelError::MissingMeta)?;
+        let meta: ModelMeta =
+            serde_json::from_str(meta_json).map_err(|e| ModelError::Meta(e.to_string()))?;
+        if meta.format_version != FORMAT_VERSION {
+            return Err(ModelError::Version {
+                found: meta.format_version,
+            });
+        }
+        let st = SafeTensors::deserialize(bytes).map_err(|e| ModelError::Format(e.to_string()))?;
+        let read = |name: &str, expected: Vec<usize>| -> Result<Vec<f32>, ModelError> {
+            let t = st
+                .tensor(name)
+                .map_err(|_| ModelError::MissingTensor(name.to_string()))?;
+            if t.dtype() != Dtype::F32 || t.shape() != expected.as_slice() {
+                return Err(ModelError::Shape {
+                    name: name.to_string(),
+                    dtype: format!("{:?}", t.dtype()),
+                    shape: t.shape().to_vec(),
+                    expected,
+                });
+            }
+            Ok(t.data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect())
+        };
+        let k = meta.hop_k;
+        let mut views = Vec::with_capacity(meta.viewpoints.len());
+        for (a, vm) in meta.viewpoints.iter().enumerate() {
+            let (r, c) = (vm.rows, vm.cols);
+            if r == 0 || c == 0 || r > MAX_TEMPLATE_CELLS || c > MAX_TEMPLATE_CELLS {
+                return Err(ModelError::Invalid(format!(
+                    "viewpoint {a}: template {r}x{c} cells out of range"
+                )));
+            }
+            let pad = |v: Vec<f32>| -> Vec<f32> {
+                v.chunks(HOG_DIM)
+                    .flat_map(|cell| cell.iter().copied().chain(std::iter::once(0.0)))
+                    .collect()
+            };
+            let w_vis = pad(read(&format!("view{a}.w_vis"), vec![r, c, HOG_DIM])?);
+            let w_occ = pad(read(&format!("view{a}.w_occ"), vec![r, c, HOG_DIM])?);
+            let w_prior = read(&format!("view{a}.w_prior"), vec![r, c])?;
+            let w_hop = read(&format!("view{a}.w_hop"), vec![k + 1])?;
+            let s = read(&format!("view{a}.scalars"), vec![3])?;
+            views.push(ViewWeights {
+                rows: r,
+                cols: c,
+                w_vis,
+                w_occ,
+                w_prior,
+                w_trunc: s[0],
+                w_pair: s[1],
+                w_hop,
+                bias: s[2],
+            });
+        }
+        Self::new(meta, views)
+    }
+
+    /// Writes the model to a file (atomically: a temporary file is renamed).
+    pub fn save(&self, path: &Path) -> Result<(), ModelError> {
+        let bytes = self.to_bytes()?;
+        let io = |source| ModelError::Io {
+            path: path.display().to_string(),
+            source,
+        };
+        let tmp = path.with_extension("safetensors.tmp");
+        std::fs::write(&tmp, bytes).map_err(io)?;
+        std::fs::rename(&tmp, path).map_err(io)
+    }
+
+    /// Reads a model from a file.
+    pub fn load(path: &Path) -> Result<Self, ModelError> {
+        let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Self::from_bytes(&bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Model {
+        let mut w = ViewWeights::zeros(2, 3, 4);
+        for (i, v) in w.w_vis.iter_mut().enumerate() {
+            if i % HOG_STRIDE < HOG_DIM {
+                *v = (i as f32 * 0.37).sin();
+            }
+        }
+        w.w_occ[5] = 0.5;
+        w.w_prior = vec![0.1, -0.2, 0.3, 0.0, 1.0, -1.0];
+        w.w_pair = 0.25;
+        w.w_hop = vec![0.0, 3.0, 4.0, 3.0, 0.0];
+        w.bias = -0.7;
+        w.w_trunc = 0.05;
+        let meta = ModelMeta {
+            format_version: FORMAT_VERSION,
+            name: "cup".into(),
+            cell_size: CELL_SIZE,
+            hop_k: 4,
+            pyramid: PyramidParams::default(),
+            segmentation: SegmentParams::default(),
+            detection: DetectParams::default(),
+            viewpoints: vec![ViewMeta { label: "cup".into(), rows: 2, cols: 3 }],
+            provenance: serde_json::json!({"made_by": "test"}),
+        };
+        Model::new(meta, vec![w]).unwrap()
+    }
+
+    #[test]
+    fn round_trips_through_bytes_and_files() {
+        let m = sample();
+        let bytes = m.to_bytes().unwrap();
+        assert_eq!(Model::from_bytes(&bytes).unwrap(), m);
+        let dir = std::env::temp_dir().join(format!("sdhop-model-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("cup.safetensors");
+        m.save(&p).unwrap();
+        assert_eq!(Model::load(&p).unwrap(), m);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn truncated_files_are_errors_not_panics() {
+        let bytes = sample().to_bytes().unwrap();
+        for cut in [0, 1, 7, 8, 20, bytes.len() / 2, bytes.len() - 1] {
+            assert!(Model::from_bytes(&bytes[..cut]).is_err(), "cut at {cut}");
+        }
+        assert!(matches!(Model::load(Path::new("/nonexistent/x.safetensors")), Err(ModelError::Io { .. })));
+    }
+
+    #[test]
+    fn inconsistent_models_are_refused() {
+        let m = sample();
+        let mut bad = m.clone();
+        bad.meta.viewpoints[0].rows = 3;
+        assert!(matches!(bad.to_bytes(), Err(ModelError::Invalid(_))));
+        let mut bad = m.clone();
+        bad.views[0].w_hop = vec![0.0, -1.0, 0.0, 0.0, 0.0];
+        assert!(matches!(bad.validate(), Err(ModelError::Weights(_))));
+        let mut bad = m.clone();
+        bad.views[0].bias = f32::INFINITY;
+        assert!(matches!(bad.validate(), Err(ModelError::Weights(VisionError::NonFinite(_)))));
+        let mut bad = m.clone();
+        bad.meta.format_version = 99;
+        assert!(matches!(bad.validate(), Err(ModelError::Version { found: 99 })));
+        // A file whose metadata claims a different template than its tensors.
+        let mut meta_only = m.clone();
+        meta_only.meta.viewpoints[0].cols = 4;
+        meta_only.views[0] = ViewWeights::zeros(2, 4, 4);
+        let mut bytes = meta_only.to_bytes().unwrap();
+        let needle = b"\"cols\":4";
+        let at = bytes.windows(needle.len()).position(|w| w == needle).unwrap();
+        bytes[at + needle.len() - 1] = b'5';
+        let text = bytes;
+        assert!(matches!(Model::from_bytes(&text), Err(ModelError::Shape { .. })));
+    }
+}

@@ -1,0 +1,257 @@
+//! From an image and models to the detection JSON (the response shape of
+//! `POST /detect`): one pyramid per distinct feature setting, every model's
+//! scan, masks, timings, and a PNG overlay for inspection.
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::Model;
+use crate::vision::detect::{detection_masks, DetectStats, Detector};
+use crate::vision::image::ColorImage;
+use crate::vision::mask::{Mask, Rle};
+use crate::vision::pyramid::FeaturePyramid;
+use crate::vision::VisionError;
+
+/// Default upper limit on the pixels of an input image.
+pub const DEFAULT_MAX_PIXELS: usize = 40_000_000;
+
+/// Which masks a response carries.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum MaskMode {
+    #[default]
+    Refined,
+    Raw,
+    Both,
+    None,
+}
+
+/// Request options; `None` means the model's default.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DetectOptions {
+    pub threshold: Option<f64>,
+    pub max_detections: Option<usize>,
+    pub masks: MaskMode,
+    /// Exact pruning (off only to check it).
+    pub prune: bool,
+    pub max_pixels: usize,
+}
+
+impl Default for DetectOptions {
+    fn default() -> Self {
+        Self {
+            threshold: None,
+            max_detections: None,
+            masks: MaskMode::Refined,
+            prune: true,
+            max_pixels: DEFAULT_MAX_PIXELS,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ImageSize {
+    pub width: usize,
+    pub height: usize,
+}
+
+/// A box in pixels: top-left corner and size; may extend outside the image.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoxJson {
+    pub x: f64,
+    pub y: f64,
+    pub width: f64,
+    pub height: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DetectionJson {
+    pub label: String,
+    pub model: String,
+    pub score: f64,
+    #[serde(rename = "box")]
+    pub bbox: BoxJson,
+    pub viewpoint: usize,
+    /// Pyramid level the detection was found at (0 = largest).
+    pub level: usize,
+    pub visible_fraction: f64,
+    pub truncated: bool,
+    /// Refined visible mask (COCO uncompressed RLE over the whole image).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub mask: Option<Rle>,
+    /// Cell-level visible mask.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub raw_mask: Option<Rle>,
+}
+
+/// Wall-clock milliseconds per stage, summed over pyramids and models
+/// (features and segmentation run concurrently), and the pruning counts.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timing {
+    pub decode: f64,
+    pub features: f64,
+    pub segmentation: f64,
+    pub cell_segments: f64,
+    pub responses: f64,
+    pub mincut: f64,
+    pub masks: f64,
+    pub total: f64,
+    pub locations: usize,
+    pub min_cuts: usize,
+    pub pruned_fraction: f64,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DetectResponse {
+    pub image: ImageSize,
+    pub detections: Vec<DetectionJson>,
+    pub timing_ms: Timing,
+}
+
+/// Runs every model on one image.
+pub fn detect_image(
+    img: &ColorImage,
+    models: &[&Model],
+    opts: &DetectOptions,
+) -> Result<DetectResponse, VisionError> {
+    let start = Instant::now();
+    let (w, h) = (img.width(), img.height());
+    if w.saturating_mul(h) > opts.max_pixels {
+        return Err(VisionError::ImageTooLarge {
+            width: w,
+            height: h,
+        });
+    }
+    let mut timing = Timing::default();
+    let mut stats = DetectStats::default();
+    let mut pyramids: Vec<FeaturePyramid> = Vec::new();
+    let mut detections: Vec<DetectionJson> = Vec::new();
+    for model in models {
+        let m = &model.meta;
+        let idx = match pyramids.iter().position(|p| {
+            p.params == m.pyramid && p.seg_params == m.segmentation
+        }) {
+            Some(i) => i,
+            None => {
+                let pyr = FeaturePyramid::build(img, &m.pyramid, &m.segmentation)?;
+                timing.features += pyr.timing.features_ms;
+                timing.segmentation += pyr.timing.segmentation_ms;
+                timing.cell_segments += pyr.timing.cell_segments_ms;
+                pyramids.push(pyr);
+                pyramids.len() - 1
+            }
+        };
+        let pyr = &pyramids[idx];
+        let mut params = m.detection;
+        if let Some(t) = opts.threshold {
+            params.threshold = t;
+        }
+        if let Some(k) = opts.max_detections {
+            params.max_detections = k;
+        }
+        params.prune = opts.prune;
+        let detector = Detector::new(&model.views)?;
+        let (dets, s) = detector.detect(pyr, &params)?;
+        stats.locations += s.locations;
+        stats.min_cuts += s.min_cuts;
+        timing.responses += s.responses_ms;
+        timing.mincut += s.mincut_ms;
+        let t = Instant::now();
+        for d in dets {
+            let (raw, refined) = if opts.masks == MaskMode::None {
+                (None, None)
+            } else {
+                let (raw, refined) = detection_masks(&d, pyr, &params.refine);
+                let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
+                let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
+                (
+                    want_raw.then(|| raw.to_rle()),
+                    want_refined.then(|| refined.to_rle()),
+                )
+            };
+            detections.push(DetectionJson {
+                label: m.viewpoints[d.viewpoint].label.clone(),
+                model: m.name.clone(),
+                score: d.score,
+                bbox: BoxJson {
+                    x: d.bbox.0,
+                    y: d.bbox.1,
+                    width: d.bbox.2,
+                    height: d.bbox.3,
+                },
+                viewpoint: d.viewpoint,
+                level: d.level,
+                visible_fraction: d.visible_fraction,
+                truncated: d.truncated,
+                mask: refined,
+                raw_mask: raw,
+            });
+        }
+        timing.masks += t.elapsed().as_secs_f64() * 1e3;
+    }
+    detections.sort_by(|a, b| b.score.total_cmp(&a.score));
+    if let Some(k) = opts.max_detections {
+        detections.truncate(k);
+    }
+    timing.locations = stats.locations;
+    timing.min_cuts = stats.min_cuts;
+    timing.pruned_fraction = stats.pruned_fraction();
+    timing.total = start.elapsed().as_secs_f64() * 1e3;
+    Ok(DetectResponse {
+        image: ImageSize {
+            width: w,
+            height: h,
+        },
+        detections,
+        timing_ms: timing,
+    })
+}
+
+/// Draws the detections over the image: visible pixels tinted, boxes outlined.
+pub fn overlay(img: &ColorImage, resp: &DetectResponse) -> image::RgbImage {
+    let mut out = img.to_rgb8();
+    let (w, h) = (img.width() as i64, img.height() as i64);
+    const COLORS: [[u8; 3]; 6] = [
+        [255, 40, 40],
+        [40, 220, 40],
+        [60, 120, 255],
+        [255, 200, 0],
+        [220, 0, 220],
+        [0, 220, 220],
+    ];
+    for (k, d) in resp.detections.iter().enumerate().rev() {
+        let c = COLORS[k % COLORS.len()];
+        if let Some(m) = d.mask.as_ref().or(d.raw_mask.as_ref()).and_then(Mask::from_rle) {
+            for y in 0..m.height {
+                for x in 0..m.width {
+                    if m.get(x, y) {
+                        let p = out.get_pixel_mut(x as u32, y as u32);
+                        for ch in 0..3 {
+                            p.0[ch] = ((u16::from(p.0[ch]) + u16::from(c[ch])) / 2) as u8;
+                        }
+                    }
+                }
+            }
+        }
+        let (x0, y0) = (d.bbox.x.round() as i64, d.bbox.y.round() as i64);
+        let (x1, y1) = (x0 + d.bbox.width.round() as i64 - 1, y0 + d.bbox.height.round() as i64 - 1);
+        for t in 0..2 {
+            for x in x0..=x1 {
+                for y in [y0 + t, y1 - t] {
+                    if x >= 0 && y >= 0 && x < w && y < h {
+                        out.put_pixel(x as u32, y as u32, image::Rgb(c));
+                    }
+                }
+            }
+            for y in y0..=y1 {
+                for x in [x0 + t, x1 - t] {
+                    if x >= 0 && y >= 0 && x < w && y < h {
+                        out.put_pixel(x as u32, y as u32, image::Rgb(c));
+                    }
+                }
+            }
+        }
+    }
+    out
+}

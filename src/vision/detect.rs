@@ -1,0 +1,600 @@
+//! SD-HOP detection: an exact min-cut at every viewpoint and pyramid location
+//! that can still matter, non-maximum suppression, and masks.
+//!
+//! Exact pruning works in two stages. Stage 1 is one linear filter per level
+//! and viewpoint: because HOG features are non-negative,
+//! `min(F_i, B_i + R_i) >= min(w_vis_i, w_occ_i) . phi_i + min(0, R_i)`
+//! (element-wise minimum of the two filters), so one correlation gives a
+//! lower bound on the energy at every location, like a plain HOG scan.
+//! Stage 2 computes the real unaries at the surviving locations and bounds
+//! again with each cell's best unary and each clique's smallest potential.
+//! A location is skipped only when a bound shows that its energy is above the
+//! cut-off: the score threshold, and for a single best detection also the
+//! best energy found so far (locations are visited in order of their bound).
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::energy::{BoxProblem, ViewWeights, NO_CLIQUE};
+use super::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
+use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
+use super::maxflow::Graph;
+use super::pyramid::{FeaturePyramid, Level};
+use super::VisionError;
+
+/// Detection settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DetectParams {
+    /// Keep detections whose score (minus the energy) is at least this.
+    pub threshold: f64,
+    /// At most this many detections after non-maximum suppression.
+    pub max_detections: usize,
+    /// Suppress a detection whose box IoU with a better one exceeds this.
+    pub nms_iou: f64,
+    /// Largest fraction of a box's cells that may lie outside the image.
+    pub max_truncation: f64,
+    /// Skip locations whose bound shows they cannot matter.
+    pub prune: bool,
+    pub refine: RefineParams,
+}
+
+impl Default for DetectParams {
+    fn default() -> Self {
+        Self {
+            threshold: 0.0,
+            max_detections: 10,
+            nms_iou: 0.4,
+            max_truncation: 0.5,
+            prune: true,
+            refine: RefineParams::default(),
+        }
+    }
+}
+
+impl DetectParams {
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let ok = !self.threshold.is_nan()
+            && (0.0..=1.0).contains(&self.nms_iou)
+            && (0.0..1.0).contains(&self.max_truncation)
+            && self.refine.fill.is_finite()
+            && self.refine.clear.is_finite();
+        if ok {
+            Ok(())
+        } else {
+            Err(VisionError::InvalidParameter(format!(
+                "detection needs a threshold, 0 <= nms_iou <= 1 and 0 <= max_truncation < 1, got {self:?}"
+            )))
+        }
+    }
+}
+
+/// One detection.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Detection {
+    pub viewpoint: usize,
+    pub level: usize,
+    /// Score: minus the energy; higher is better.
+    pub score: f64,
+    /// Full-extent box in image pixels `(x, y, width, height)`.
+    pub bbox: (f64, f64, f64, f64),
+    /// Box geometry on its level.
+    pub grid: CellGrid,
+    /// Visibility of the box cells, row-major.
+    pub cells: Vec<bool>,
+    /// Whether the box extends beyond the image.
+    pub truncated: bool,
+    /// Fraction of the box cells labelled visible.
+    pub visible_fraction: f64,
+}
+
+/// Counts and per-stage wall-clock times of one scan.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct DetectStats {
+    pub locations: usize,
+    pub pruned_stage1: usize,
+    pub pruned_stage2: usize,
+    pub min_cuts: usize,
+    pub responses_ms: f64,
+    pub mincut_ms: f64,
+    pub nms_ms: f64,
+}
+
+impl DetectStats {
+    /// Fraction of locations that never reached a min-cut.
+    pub fn pruned_fraction(&self) -> f64 {
+        if self.locations == 0 {
+            0.0
+        } else {
+            1.0 - self.min_cuts as f64 / self.locations as f64
+        }
+    }
+}
+
+/// A viewpoint prepared for scanning.
+struct View<'a> {
+    w: &'a ViewWeights,
+    /// Element-wise `min(w_vis, w_occ)`, the stage-1 filter.
+    bound_filter: Vec<f32>,
+    /// `sum_i min(0, R_i)`.
+    prior_bound: f64,
+    /// `min(w_0, w_K)`, the smallest value of any clique potential.
+    hop_min: f64,
+    w_hop: Vec<f64>,
+}
+
+/// A scanned location that survived stage 1.
+#[derive(Clone, Copy, Debug)]
+struct Candidate {
+    view: usize,
+    level: usize,
+    x: isize,
+    y: isize,
+    bound: f64,
+}
+
+struct Solved {
+    cand: Candidate,
+    energy: f64,
+    cells: Vec<bool>,
+}
+
+/// Per-thread buffers reused between locations.
+#[derive(Default)]
+struct Scratch {
+    graph: Graph,
+    problem: BoxProblem,
+    labels: Vec<bool>,
+    seg_stamp: Vec<u32>,
+    seg_local: Vec<u32>,
+    generation: u32,
+}
+
+/// A margin that absorbs float round-off between the bound and the energy.
+#[inline]
+fn margin(v: f64) -> f64 {
+    1e-4 * (1.0 + v.abs())
+}
+
+/// Dot product of two equal-length slices with eight accumulators (the
+/// compiler vectorises it; see [`dot`] for the dispatch).
+#[inline(always)]
+fn dot_body(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let ca = a.chunks_exact(8);
+    let cb = b.chunks_exact(8);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let mut s: f32 = acc.iter().sum();
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dot_avx2(a: &[f32], b: &[f32]) -> f32 {
+    dot_body(a, b)
+}
+
+/// Dot product, using AVX2 when the processor has it.
+#[inline]
+pub fn dot(a: &[f32], b: &[f32]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the features were detected at run time.
+            return unsafe { dot_avx2(a, b) };
+        }
+    }
+    dot_body(a, b)
+}
+
+/// A feature map with a zero border, so a box partly outside the image reads
+/// zeros for its outside cells.
+struct PaddedMap {
+    pad_x: usize,
+    pad_y: usize,
+    width: usize,
+    data: Vec<f32>,
+}
+
+impl PaddedMap {
+    fn new(hog: &HogMap, pad_x: usize, pad_y: usize) -> Self {
+        let width = hog.width() + 2 * pad_x;
+        let height = hog.height() + 2 * pad_y;
+        let mut data = vec![0.0f32; width * height * HOG_STRIDE];
+        let row = hog.width() * HOG_STRIDE;
+        for y in 0..hog.height() {
+            let dst = ((y + pad_y) * width + pad_x) * HOG_STRIDE;
+            data[dst..dst + row].copy_from_slice(&hog.raw()[y * row..(y + 1) * row]);
+        }
+        Self {
+            pad_x,
+            pad_y,
+            width,
+            data,
+        }
+    }
+
+    /// The `cols` cells of row `y` starting at column `x` (signed, map
+    /// coordinates), contiguous.
+    #[inline]
+    fn row(&self, x: isize, y: isize, cols: usize) -> &[f32] {
+        let px = (x + self.pad_x as isize) as usize;
+        let py = (y + self.pad_y as isize) as usize;
+        let o = (py * self.width + px) * HOG_STRIDE;
+        &self.data[o..o + cols * HOG_STRIDE]
+    }
+}
+
+/// Range of top-left positions along one axis whose box of `len` cells has
+/// at least `min_inside` cells inside `[0, size)`.
+fn positions(size: usize, len: usize, min_inside: usize) -> (isize, isize) {
+    let lo = min_inside as isize - len as isize;
+    let hi = size as isize - min_inside as isize;
+    (lo, hi)
+}
+
+fn overlap(start: isize, len: usize, size: usize) -> usize {
+    let a = start.max(0);
+    let b = (start + len as isize).min(size as isize);
+    (b - a).max(0) as usize
+}
+
+/// An SD-HOP detector over the viewpoints of one model.
+pub struct Detector<'a> {
+    views: Vec<View<'a>>,
+}
+
+impl<'a> Detector<'a> {
+    /// Prepares the viewpoints; checks them first.
+    pub fn new(views: &'a [ViewWeights]) -> Result<Self, VisionError> {
+        if views.is_empty() {
+            return Err(VisionError::InvalidParameter("a model needs a viewpoint".into()));
+        }
+        let views = views
+            .iter()
+            .map(|w| {
+                w.validate()?;
+                let bound_filter = w.w_vis.iter().zip(&w.w_occ).map(|(a, b)| a.min(*b)).collect();
+                let prior_bound = w.w_prior.iter().map(|&r| f64::from(r).min(0.0)).sum();
+                let w_hop: Vec<f64> = w.w_hop.iter().map(|&v| f64::from(v)).collect();
+                let hop_min = w_hop[0].min(w_hop[w_hop.len() - 1]);
+                Ok(View {
+                    w,
+                    bound_filter,
+                    prior_bound,
+                    hop_min,
+                    w_hop,
+                })
+            })
+            .collect::<Result<Vec<_>, VisionError>>()?;
+        Ok(Self { views })
+    }
+
+    /// Stage 1 at every location of one level and viewpoint: the bound of each
+    /// location that passes `cut`, or every location when not pruning.
+    fn scan_level(
+        &self,
+        level_idx: usize,
+        level: &Level,
+        vi: usize,
+        params: &DetectParams,
+        cut: f64,
+    ) -> (usize, Vec<Candidate>) {
+        let view = &self.views[vi];
+        let (rows, cols) = (view.w.rows, view.w.cols);
+        let n = rows * cols;
+        let (mw, mh) = (level.hog.width(), level.hog.height());
+        let min_inside = (((1.0 - params.max_truncation) * n as f64).ceil() as usize).max(1);
+        // Smallest overlap per axis that can still reach min_inside cells.
+        let min_x = min_inside.div_ceil(rows).max(1);
+        let min_y = min_inside.div_ceil(cols).max(1);
+        if mw < min_x || mh < min_y {
+            return (0, Vec::new());
+        }
+        let (x_lo, x_hi) = positions(mw, cols, min_x);
+        let (y_lo, y_hi) = positions(mh, rows, min_y);
+        let padded = PaddedMap::new(&level.hog, cols, rows);
+        let mut out = Vec::new();
+        let mut count = 0;
+        for y in y_lo..=y_hi {
+            let oy = overlap(y, rows, mh);
+            for x in x_lo..=x_hi {
+                let ox = overlap(x, cols, mw);
+                let inside = ox * oy;
+                if inside < min_inside {
+                    continue;
+                }
+                count += 1;
+                let truncated = (n - inside) as f64;
+                let hop = if view.hop_min >= 0.0 {
+                    view.hop_min
+                } else {
+                    view.hop_min * inside as f64
+                };
+                let mut bound = view.prior_bound
+                    + hop
+                    + f64::from(view.w.w_trunc) * truncated
+                    + f64::from(view.w.bias);
+                if params.prune {
+                    let mut resp = 0.0f32;
+                    for ty in 0..rows {
+                        let f = &view.bound_filter[ty * cols * HOG_STRIDE..(ty + 1) * cols * HOG_STRIDE];
+                        resp += dot(f, padded.row(x, y + ty as isize, cols));
+                    }
+                    bound += f64::from(resp);
+                    if bound - margin(bound) > cut {
+                        continue;
+                    }
+                } else {
+                    bound = f64::NEG_INFINITY;
+                }
+                out.push(Candidate {
+                    view: vi,
+                    level: level_idx,
+                    x,
+                    y,
+                    bound,
+                });
+            }
+        }
+        (count, out)
+    }
+
+    /// Stage 2 and the min-cut at one candidate. `None` when pruned.
+    fn solve(
+        &self,
+        pyr: &FeaturePyramid,
+        cand: &Candidate,
+        cut: f64,
+        prune: bool,
+        s: &mut Scratch,
+    ) -> Option<Solved> {
+        let view = &self.views[cand.view];
+        let w = view.w;
+        let level = &pyr.levels[cand.level];
+        let (rows, cols) = (w.rows, w.cols);
+        let (mw, mh) = (level.hog.width(), level.hog.height());
+        if s.problem.rows != rows || s.problem.cols != cols || s.problem.w_hop != view.w_hop {
+            s.problem = BoxProblem::new(rows, cols, view.w_hop.clone());
+        }
+        let nseg = pyr.segmentation.count();
+        if s.seg_stamp.len() < nseg {
+            s.seg_stamp.resize(nseg, 0);
+            s.seg_local.resize(nseg, 0);
+        }
+        s.generation = s.generation.wrapping_add(1);
+        if s.generation == 0 {
+            s.seg_stamp.iter_mut().for_each(|v| *v = 0);
+            s.generation = 1;
+        }
+        let p = &mut s.problem;
+        p.pairwise = f64::from(w.w_pair);
+        let mut n_cliques = 0u32;
+        let mut truncated = 0usize;
+        for ty in 0..rows {
+            for tx in 0..cols {
+                let i = ty * cols + tx;
+                let (cx, cy) = (cand.x + tx as isize, cand.y + ty as isize);
+                let prior = f64::from(w.w_prior[i]);
+                if cx < 0 || cy < 0 || cx as usize >= mw || cy as usize >= mh {
+                    p.u1[i] = 0.0;
+                    p.u0[i] = prior;
+                    p.clique_of[i] = NO_CLIQUE;
+                    truncated += 1;
+                    continue;
+                }
+                let (cx, cy) = (cx as usize, cy as usize);
+                let phi = level.hog.cell_padded(cx, cy);
+                let f = &w.w_vis[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
+                let b = &w.w_occ[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
+                p.u1[i] = f64::from(dot(f, phi));
+                p.u0[i] = f64::from(dot(b, phi)) + prior;
+                let seg = level.cell_segments[cy * mw + cx] as usize;
+                if s.seg_stamp[seg] != s.generation {
+                    s.seg_stamp[seg] = s.generation;
+                    s.seg_local[seg] = n_cliques;
+                    n_cliques += 1;
+                }
+                p.clique_of[i] = s.seg_local[seg];
+            }
+        }
+        p.n_cliques = n_cliques as usize;
+        p.constant = f64::from(w.w_trunc) * truncated as f64 + f64::from(w.bias);
+        if prune {
+            let lb = p.lower_bound();
+            if lb - margin(lb) > cut {
+                return None;
+            }
+        }
+        let energy = p.solve(&mut s.graph, &mut s.labels);
+        Some(Solved {
+            cand: *cand,
+            energy,
+            cells: s.labels.clone(),
+        })
+    }
+
+    /// Scans a pyramid. Returns the detections (best first) and statistics.
+    pub fn detect(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+    ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
+        params.validate()?;
+        let mut stats = DetectStats::default();
+        if params.max_detections == 0 {
+            return Ok((Vec::new(), stats));
+        }
+        let cut = -params.threshold;
+        let t = Instant::now();
+        let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
+            .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
+            .collect();
+        let scanned: Vec<(usize, Vec<Candidate>)> = jobs
+            .par_iter()
+            .map(|&(l, v)| self.scan_level(l, &pyr.levels[l], v, params, cut))
+            .collect();
+        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
+        let mut cands: Vec<Candidate> = Vec::new();
+        for (count, c) in scanned {
+            stats.locations += count;
+            cands.extend(c);
+        }
+        stats.pruned_stage1 = stats.locations - cands.len();
+        // Visit in order of the bound (ties in a fixed order).
+        cands.sort_by(|a, b| {
+            a.bound
+                .total_cmp(&b.bound)
+                .then((a.level, a.view, a.y, a.x).cmp(&(b.level, b.view, b.y, b.x)))
+        });
+
+        let t = Instant::now();
+        let single = params.max_detections == 1 && params.prune;
+        let mut solved: Vec<Solved> = Vec::new();
+        let mut best = cut;
+        let chunk = if single { 64 } else { cands.len().max(1) };
+        for block in cands.chunks(chunk) {
+            if single && block[0].bound - margin(block[0].bound) > best {
+                break;
+            }
+            let cutoff = best;
+            let out: Vec<Option<Solved>> = block
+                .par_iter()
+                .map_init(Scratch::default, |s, c| {
+                    if single && c.bound - margin(c.bound) > cutoff {
+                        return None;
+                    }
+                    self.solve(pyr, c, cutoff, params.prune, s)
+                })
+                .collect();
+            for r in out.into_iter().flatten() {
+                stats.min_cuts += 1;
+                if r.energy <= cut {
+                    if single {
+                        best = best.min(r.energy);
+                    }
+                    solved.push(r);
+                }
+            }
+        }
+        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
+        stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        let dets = self.suppress(pyr, solved, params);
+        stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok((dets, stats))
+    }
+
+    /// Sorts by score (ties in a fixed order), converts to image boxes and
+    /// applies greedy non-maximum suppression.
+    fn suppress(
+        &self,
+        pyr: &FeaturePyramid,
+        mut solved: Vec<Solved>,
+        params: &DetectParams,
+    ) -> Vec<Detection> {
+        solved.sort_by(|a, b| {
+            a.energy.total_cmp(&b.energy).then(
+                (a.cand.level, a.cand.view, a.cand.y, a.cand.x)
+                    .cmp(&(b.cand.level, b.cand.view, b.cand.y, b.cand.x)),
+            )
+        });
+        let mut out: Vec<Detection> = Vec::new();
+        for s in solved {
+            if out.len() >= params.max_detections {
+                break;
+            }
+            let view = &self.views[s.cand.view];
+            let level = &pyr.levels[s.cand.level];
+            let grid = CellGrid {
+                cell_x: s.cand.x,
+                cell_y: s.cand.y,
+                rows: view.w.rows,
+                cols: view.w.cols,
+                scale_x: level.scale_x,
+                scale_y: level.scale_y,
+                cell_size: CELL_SIZE,
+            };
+            let bbox = grid.pixel_box();
+            if out.iter().any(|d| box_iou(d.bbox, bbox) > params.nms_iou) {
+                continue;
+            }
+            let (mw, mh) = (level.hog.width(), level.hog.height());
+            let truncated = s.cand.x < 0
+                || s.cand.y < 0
+                || s.cand.x + view.w.cols as isize > mw as isize
+                || s.cand.y + view.w.rows as isize > mh as isize;
+            let visible = s.cells.iter().filter(|&&v| v).count();
+            out.push(Detection {
+                viewpoint: s.cand.view,
+                level: s.cand.level,
+                score: -s.energy,
+                bbox,
+                grid,
+                visible_fraction: visible as f64 / s.cells.len() as f64,
+                cells: s.cells,
+                truncated,
+            });
+        }
+        out
+    }
+}
+
+/// IoU of two boxes `(x, y, w, h)`.
+pub fn box_iou(a: (f64, f64, f64, f64), b: (f64, f64, f64, f64)) -> f64 {
+    let ix = (a.0 + a.2).min(b.0 + b.2) - a.0.max(b.0);
+    let iy = (a.1 + a.3).min(b.1 + b.3) - a.1.max(b.1);
+    if ix <= 0.0 || iy <= 0.0 {
+        return 0.0;
+    }
+    let inter = ix * iy;
+    inter / (a.2 * a.3 + b.2 * b.3 - inter)
+}
+
+/// The raw and refined pixel masks of a detection.
+pub fn detection_masks(
+    det: &Detection,
+    pyr: &FeaturePyramid,
+    refine: &RefineParams,
+) -> (Mask, Mask) {
+    let raw = raw_mask(&det.grid, &det.cells, pyr.image_width, pyr.image_height);
+    let refined = refine_mask(&raw, &det.grid, &pyr.segmentation, refine);
+    (raw, refined)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn iou_of_boxes() {
+        assert_eq!(box_iou((0.0, 0.0, 2.0, 2.0), (2.0, 0.0, 2.0, 2.0)), 0.0);
+        assert!((box_iou((0.0, 0.0, 2.0, 2.0), (1.0, 0.0, 2.0, 2.0)) - 1.0 / 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn positions_keep_enough_cells_inside() {
+        let (lo, hi) = positions(10, 4, 2);
+        assert_eq!((lo, hi), (-2, 8));
+        assert_eq!(overlap(-2, 4, 10), 2);
+        assert_eq!(overlap(8, 4, 10), 2);
+    }
+
+    #[test]
+    fn dot_matches_plain_sum() {
+        let a: Vec<f32> = (0..77).map(|i| i as f32 * 0.1).collect();
+        let b: Vec<f32> = (0..77).map(|i| 1.0 - i as f32 * 0.01).collect();
+        let plain: f32 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+        assert!((dot(&a, &b) - plain).abs() < 1e-3);
+    }
+}

@@ -1,0 +1,274 @@
+//! Binary pixel masks: the raw cell mask of a detection drawn in image
+//! pixels, its refinement by image segments (paper section 3.3), and COCO
+//! uncompressed run-length encoding.
+
+use serde::{Deserialize, Serialize};
+
+use super::segment::Segmentation;
+
+/// A binary mask over an image, row-major, one byte per pixel (0 or 1).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Mask {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<u8>,
+}
+
+impl Mask {
+    pub fn new(width: usize, height: usize) -> Self {
+        Self {
+            width,
+            height,
+            data: vec![0; width * height],
+        }
+    }
+
+    #[inline]
+    pub fn get(&self, x: usize, y: usize) -> bool {
+        self.data[y * self.width + x] != 0
+    }
+
+    #[inline]
+    pub fn set(&mut self, x: usize, y: usize, v: bool) {
+        self.data[y * self.width + x] = u8::from(v);
+    }
+
+    pub fn area(&self) -> usize {
+        self.data.iter().filter(|&&v| v != 0).count()
+    }
+
+    /// Intersection over union with another mask of the same size (1 when
+    /// both are empty).
+    pub fn iou(&self, other: &Mask) -> f64 {
+        let mut inter = 0usize;
+        let mut union = 0usize;
+        for (a, b) in self.data.iter().zip(&other.data) {
+            let (a, b) = (*a != 0, *b != 0);
+            inter += usize::from(a && b);
+            union += usize::from(a || b);
+        }
+        if union == 0 {
+            1.0
+        } else {
+            inter as f64 / union as f64
+        }
+    }
+
+    /// COCO uncompressed RLE: column-major run lengths, starting with a run
+    /// of zeros (possibly empty).
+    pub fn to_rle(&self) -> Rle {
+        let mut counts = Vec::new();
+        let mut current = 0u8;
+        let mut run = 0u32;
+        for x in 0..self.width {
+            for y in 0..self.height {
+                let v = u8::from(self.get(x, y));
+                if v != current {
+                    counts.push(run);
+                    run = 0;
+                    current = v;
+                }
+                run += 1;
+            }
+        }
+        counts.push(run);
+        Rle {
+            size: [self.height, self.width],
+            counts,
+        }
+    }
+
+    /// Decodes a COCO uncompressed RLE; `None` when the counts do not cover
+    /// exactly `h * w` pixels.
+    pub fn from_rle(rle: &Rle) -> Option<Self> {
+        let [h, w] = rle.size;
+        let total: u64 = rle.counts.iter().map(|&c| u64::from(c)).sum();
+        if total != (h as u64) * (w as u64) {
+            return None;
+        }
+        let mut m = Mask::new(w, h);
+        let mut p = 0usize;
+        for (k, &c) in rle.counts.iter().enumerate() {
+            for _ in 0..c {
+                if k % 2 == 1 {
+                    let (x, y) = (p / h, p % h);
+                    m.set(x, y, true);
+                }
+                p += 1;
+            }
+        }
+        Some(m)
+    }
+}
+
+/// COCO uncompressed RLE (`size` is `[height, width]`).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Rle {
+    pub size: [usize; 2],
+    pub counts: Vec<u32>,
+}
+
+/// Geometry of a box on a pyramid level, to draw cell labels in pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CellGrid {
+    /// Top-left cell of the box on the level (may be negative).
+    pub cell_x: isize,
+    pub cell_y: isize,
+    pub rows: usize,
+    pub cols: usize,
+    /// Level size over image size.
+    pub scale_x: f64,
+    pub scale_y: f64,
+    pub cell_size: usize,
+}
+
+impl CellGrid {
+    /// The box in image pixels `(x, y, width, height)`.
+    pub fn pixel_box(&self) -> (f64, f64, f64, f64) {
+        let cs = self.cell_size as f64;
+        (
+            self.cell_x as f64 * cs / self.scale_x,
+            self.cell_y as f64 * cs / self.scale_y,
+            self.cols as f64 * cs / self.scale_x,
+            self.rows as f64 * cs / self.scale_y,
+        )
+    }
+
+    /// Pixel range `[x0, x1) x [y0, y1)` of the box clipped to the image.
+    pub fn pixel_range(&self, width: usize, height: usize) -> (usize, usize, usize, usize) {
+        let (x, y, w, h) = self.pixel_box();
+        let clip = |v: f64, hi: usize| v.round().clamp(0.0, hi as f64) as usize;
+        (clip(x, width), clip(y, height), clip(x + w, width), clip(y + h, height))
+    }
+
+    /// The box cell containing pixel `(px, py)`, if any.
+    #[inline]
+    pub fn cell_of(&self, px: usize, py: usize) -> Option<usize> {
+        let cs = self.cell_size as f64;
+        let cx = ((px as f64 + 0.5) * self.scale_x / cs).floor() as isize - self.cell_x;
+        let cy = ((py as f64 + 0.5) * self.scale_y / cs).floor() as isize - self.cell_y;
+        (cx >= 0 && cy >= 0 && (cx as usize) < self.cols && (cy as usize) < self.rows)
+            .then(|| cy as usize * self.cols + cx as usize)
+    }
+}
+
+/// Draws the cell labels of a box as a pixel mask over the image.
+pub fn raw_mask(grid: &CellGrid, labels: &[bool], width: usize, height: usize) -> Mask {
+    let mut m = Mask::new(width, height);
+    let (x0, y0, x1, y1) = grid.pixel_range(width, height);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            if let Some(i) = grid.cell_of(x, y) {
+                if labels[i] {
+                    m.set(x, y, true);
+                }
+            }
+        }
+    }
+    m
+}
+
+/// Refinement thresholds: a segment whose pixels inside the box are more than
+/// `fill` visible becomes wholly visible (the paper's 0.8); one less than
+/// `clear` visible becomes wholly occluded (0 disables that).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RefineParams {
+    pub fill: f64,
+    pub clear: f64,
+}
+
+impl Default for RefineParams {
+    fn default() -> Self {
+        Self {
+            fill: 0.8,
+            clear: 0.2,
+        }
+    }
+}
+
+/// Snaps a raw mask to the image segments inside the box.
+pub fn refine_mask(
+    raw: &Mask,
+    grid: &CellGrid,
+    seg: &Segmentation,
+    params: &RefineParams,
+) -> Mask {
+    let (x0, y0, x1, y1) = grid.pixel_range(raw.width, raw.height);
+    let mut total = vec![0u32; seg.count()];
+    let mut on = vec![0u32; seg.count()];
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let s = seg.label(x, y) as usize;
+            total[s] += 1;
+            on[s] += u32::from(raw.get(x, y));
+        }
+    }
+    let mut out = raw.clone();
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let s = seg.label(x, y) as usize;
+            let frac = f64::from(on[s]) / f64::from(total[s]);
+            if frac > params.fill {
+                out.set(x, y, true);
+            } else if frac < params.clear {
+                out.set(x, y, false);
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rle_is_column_major_and_round_trips() {
+        let mut m = Mask::new(3, 2);
+        m.set(0, 1, true);
+        m.set(1, 0, true);
+        m.set(1, 1, true);
+        // Column-major: (0,0)=0 (0,1)=1 (1,0)=1 (1,1)=1 (2,0)=0 (2,1)=0.
+        let rle = m.to_rle();
+        assert_eq!(rle.size, [2, 3]);
+        assert_eq!(rle.counts, vec![1, 3, 2]);
+        assert_eq!(Mask::from_rle(&rle).unwrap(), m);
+        let mut full = Mask::new(2, 2);
+        full.data.iter_mut().for_each(|v| *v = 1);
+        assert_eq!(full.to_rle().counts, vec![0, 4]);
+        assert!(Mask::from_rle(&Rle { size: [2, 2], counts: vec![1, 1] }).is_none());
+    }
+
+    #[test]
+    fn cells_map_to_pixels() {
+        let grid = CellGrid { cell_x: -1, cell_y: 0, rows: 1, cols: 2, scale_x: 0.5, scale_y: 0.5, cell_size: 8 };
+        // Box covers pixels x in [-16, 16), y in [0, 16).
+        assert_eq!(grid.pixel_box(), (-16.0, 0.0, 32.0, 16.0));
+        let m = raw_mask(&grid, &[true, false], 20, 20);
+        // Cell 0 is outside the image; cell 1 covers x 0..16 but is occluded.
+        assert_eq!(m.area(), 0);
+        let m = raw_mask(&grid, &[false, true], 20, 20);
+        assert_eq!(m.area(), 16 * 16);
+        assert!(m.get(15, 15) && !m.get(16, 0) && !m.get(0, 16));
+    }
+
+    #[test]
+    fn refinement_fills_and_clears_segments() {
+        // Two segments: left half (label 0) and right half (label 1) of 16x8.
+        let raw: Vec<u32> = (0..8).flat_map(|_| (0..16).map(|x| u32::from(x >= 8))).collect();
+        let seg = Segmentation::from_labels(16, 8, &raw).unwrap();
+        let grid = CellGrid { cell_x: 0, cell_y: 0, rows: 1, cols: 2, scale_x: 1.0, scale_y: 1.0, cell_size: 8 };
+        let mut m = Mask::new(16, 8);
+        for y in 0..8 {
+            for x in 0..8 {
+                m.set(x, y, !(x == 0 && y == 0)); // 63/64 of segment 0 visible
+            }
+        }
+        m.set(12, 3, true); // 1/64 of segment 1 visible
+        let r = refine_mask(&m, &grid, &seg, &RefineParams::default());
+        assert_eq!(r.area(), 64);
+        assert!(r.get(0, 0) && !r.get(12, 3));
+        let keep = refine_mask(&m, &grid, &seg, &RefineParams { fill: 1.0, clear: 0.0 });
+        assert_eq!(keep, m);
+    }
+}

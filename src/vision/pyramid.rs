@@ -1,0 +1,209 @@
+//! The scale-space pyramid: HOG features and segment-per-cell maps at every
+//! level, plus the pixel-level over-segmentation of the input image.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::hog::{hog, HogMap, CELL_SIZE};
+use super::image::ColorImage;
+use super::segment::{segment, SegmentParams, Segmentation};
+use super::VisionError;
+
+/// Pyramid settings: levels at `max_scale * 2^(-l / levels_per_octave)` down
+/// to `min_scale` (scale = level size / image size).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PyramidParams {
+    pub levels_per_octave: u32,
+    pub max_scale: f32,
+    pub min_scale: f32,
+}
+
+impl Default for PyramidParams {
+    /// 11 levels from full size down to half size.
+    fn default() -> Self {
+        Self {
+            levels_per_octave: 10,
+            max_scale: 1.0,
+            min_scale: 0.5,
+        }
+    }
+}
+
+/// Upper limit of pyramid levels, whatever the settings.
+pub const MAX_LEVELS: usize = 64;
+
+impl PyramidParams {
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let ok = self.levels_per_octave >= 1
+            && self.levels_per_octave <= 64
+            && self.max_scale.is_finite()
+            && self.min_scale.is_finite()
+            && self.min_scale > 0.0
+            && self.max_scale >= self.min_scale
+            && self.max_scale <= 4.0;
+        if !ok {
+            return Err(VisionError::InvalidParameter(format!(
+                "pyramid needs 1 <= levels_per_octave <= 64 and 0 < min_scale <= max_scale <= 4, got {self:?}"
+            )));
+        }
+        if self.scales().len() > MAX_LEVELS {
+            return Err(VisionError::InvalidParameter(format!(
+                "pyramid would have more than {MAX_LEVELS} levels"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The nominal scale of every level, largest first.
+    pub fn scales(&self) -> Vec<f64> {
+        let mut out = Vec::new();
+        let lambda = f64::from(self.levels_per_octave.max(1));
+        for l in 0..=MAX_LEVELS {
+            let s = f64::from(self.max_scale) * (-(l as f64) / lambda).exp2();
+            if s < f64::from(self.min_scale) * (1.0 - 1e-9) {
+                break;
+            }
+            out.push(s);
+        }
+        out
+    }
+}
+
+/// One pyramid level.
+#[derive(Clone, Debug)]
+pub struct Level {
+    /// Level width over image width (exact, after rounding the level size).
+    pub scale_x: f64,
+    /// Level height over image height.
+    pub scale_y: f64,
+    pub hog: HogMap,
+    /// Segment of every cell, row-major over the HOG map.
+    pub cell_segments: Vec<u32>,
+}
+
+/// Wall-clock time of the pyramid's stages in milliseconds (features and
+/// segmentation run concurrently).
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct PyramidTiming {
+    pub features_ms: f64,
+    pub segmentation_ms: f64,
+    pub cell_segments_ms: f64,
+}
+
+/// HOG pyramid and over-segmentation of one image.
+#[derive(Clone, Debug)]
+pub struct FeaturePyramid {
+    pub image_width: usize,
+    pub image_height: usize,
+    pub levels: Vec<Level>,
+    pub segmentation: Segmentation,
+    pub timing: PyramidTiming,
+    /// The settings it was built with.
+    pub params: PyramidParams,
+    pub seg_params: SegmentParams,
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+impl FeaturePyramid {
+    /// Builds the pyramid: segmentation and the HOG levels in parallel.
+    pub fn build(
+        img: &ColorImage,
+        params: &PyramidParams,
+        seg: &SegmentParams,
+    ) -> Result<Self, VisionError> {
+        params.validate()?;
+        seg.validate()?;
+        let (w, h) = (img.width(), img.height());
+        let (segmentation, hogs) = rayon::join(
+            || {
+                let t = Instant::now();
+                segment(img, seg).map(|s| (s, ms(t)))
+            },
+            || {
+                let t = Instant::now();
+                let levels: Result<Vec<_>, VisionError> = params
+                    .scales()
+                    .into_par_iter()
+                    .filter_map(|s| {
+                        let lw = (w as f64 * s).round() as usize;
+                        let lh = (h as f64 * s).round() as usize;
+                        (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
+                    })
+                    .map(|(lw, lh)| {
+                        let resized = img.resize_area(lw, lh)?;
+                        Ok((lw, lh, hog(&resized)))
+                    })
+                    .collect();
+                levels.map(|l| (l, ms(t)))
+            },
+        );
+        let (segmentation, segmentation_ms) = segmentation?;
+        let (hogs, features_ms) = hogs?;
+        let t = Instant::now();
+        let levels = hogs
+            .into_par_iter()
+            .map(|(lw, lh, hog)| {
+                let cell_segments =
+                    segmentation.cell_labels(lw, lh, hog.width(), hog.height(), CELL_SIZE);
+                Level {
+                    scale_x: lw as f64 / w as f64,
+                    scale_y: lh as f64 / h as f64,
+                    hog,
+                    cell_segments,
+                }
+            })
+            .collect();
+        Ok(Self {
+            image_width: w,
+            image_height: h,
+            levels,
+            segmentation,
+            timing: PyramidTiming {
+                features_ms,
+                segmentation_ms,
+                cell_segments_ms: ms(t),
+            },
+            params: *params,
+            seg_params: *seg,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_gives_eleven_levels_on_vga() {
+        let p = PyramidParams::default();
+        let s = p.scales();
+        assert_eq!(s.len(), 11);
+        assert!((s[0] - 1.0).abs() < 1e-12 && (s[10] - 0.5).abs() < 1e-12);
+        let img = ColorImage::new(64, 48, vec![10.0; 64 * 48 * 3]).unwrap();
+        let pyr = FeaturePyramid::build(&img, &p, &SegmentParams::default()).unwrap();
+        assert_eq!(pyr.levels.len(), 11);
+        assert_eq!((pyr.levels[0].hog.width(), pyr.levels[0].hog.height()), (8, 6));
+        for l in &pyr.levels {
+            assert_eq!(l.cell_segments.len(), l.hog.width() * l.hog.height());
+        }
+    }
+
+    #[test]
+    fn invalid_settings_are_refused() {
+        let bad = [
+            PyramidParams { levels_per_octave: 0, ..Default::default() },
+            PyramidParams { min_scale: 0.0, ..Default::default() },
+            PyramidParams { min_scale: 2.0, max_scale: 1.0, ..Default::default() },
+            PyramidParams { max_scale: f32::NAN, ..Default::default() },
+            PyramidParams { levels_per_octave: 64, min_scale: 0.01, max_scale: 4.0 },
+        ];
+        for p in bad {
+            assert!(p.validate().is_err(), "{p:?}");
+        }
+    }
+}
