@@ -78,12 +78,32 @@ impl SynthObject {
         let ys = y0.floor().max(0.0) as usize;
         let xe = ((x0 + w).ceil() as usize).min(width);
         let ye = ((y0 + h).ceil() as usize).min(height);
+        // 4x4 supersampling: anti-aliased edges, as a camera would see them.
+        const SS: usize = 4;
         for y in ys..ye {
             for x in xs..xe {
-                let u = (x as f64 + 0.5 - x0) / w;
-                let v = (y as f64 + 0.5 - y0) / h;
-                if let Some(c) = self.color_at(u, v, (w, h)) {
-                    img[(y * width + x) * 3..(y * width + x) * 3 + 3].copy_from_slice(&c);
+                let mut acc = [0.0f32; 3];
+                let mut hits = 0usize;
+                for sy in 0..SS {
+                    for sx in 0..SS {
+                        let u = (x as f64 + (sx as f64 + 0.5) / SS as f64 - x0) / w;
+                        let v = (y as f64 + (sy as f64 + 0.5) / SS as f64 - y0) / h;
+                        if let Some(c) = self.color_at(u, v, (w, h)) {
+                            acc.iter_mut().zip(c).for_each(|(a, c)| *a += c);
+                            hits += 1;
+                        }
+                    }
+                }
+                if hits == 0 {
+                    continue;
+                }
+                let p = (y * width + x) * 3;
+                let cover = hits as f32 / (SS * SS) as f32;
+                for c in 0..3 {
+                    let fg = acc[c] / hits as f32;
+                    img[p + c] = cover * fg + (1.0 - cover) * img[p + c];
+                }
+                if 2 * hits >= SS * SS {
                     mask.set(x, y, true);
                 }
             }

@@ -1,0 +1,193 @@
+//! End-to-end tests on synthetic scenes the project generates itself.
+
+use sdhop::model::Model;
+use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
+use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
+use sdhop::vision::detect::{box_iou, DetectParams, Detector};
+use sdhop::vision::image::ColorImage;
+use sdhop::vision::mask::Mask;
+use sdhop::vision::pyramid::FeaturePyramid;
+use sdhop::vision::VisionError;
+
+const OBJECT: SynthObject = SynthObject {
+    cols: 12,
+    rows: 10,
+    seed: 11,
+};
+
+fn scenes(n: u64) -> Vec<Scene> {
+    (0..n)
+        .map(|seed| {
+            scene(
+                &OBJECT,
+                &SceneParams {
+                    seed,
+                    ..SceneParams::default()
+                },
+            )
+            .unwrap()
+        })
+        .collect()
+}
+
+/// Mean box IoU and mean visible-mask IoU of the top detection (a miss
+/// counts 0 for both).
+fn evaluate(model: &Model, scenes: &[Scene], masks: MaskMode) -> (f64, f64) {
+    let opts = DetectOptions {
+        max_detections: Some(1),
+        masks,
+        ..DetectOptions::default()
+    };
+    let (mut b, mut m) = (0.0, 0.0);
+    for s in scenes {
+        let resp = detect_image(&s.image, &[model], &opts).unwrap();
+        if let Some(d) = resp.detections.first() {
+            b += box_iou((d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height), s.truth_box);
+            let rle = d.mask.as_ref().or(d.raw_mask.as_ref()).unwrap();
+            m += Mask::from_rle(rle).unwrap().iou(&s.visible);
+        }
+    }
+    (b / scenes.len() as f64, m / scenes.len() as f64)
+}
+
+#[test]
+fn finds_full_box_and_visible_mask_and_beats_plain_hog() {
+    let scenes = scenes(12);
+    let hp = HandModelParams::default();
+    let sdhop = hand_model(&OBJECT, "synthetic", true, &hp).unwrap();
+    let plain = hand_model(&OBJECT, "plain", false, &hp).unwrap();
+    let (box_iou, mask_iou) = evaluate(&sdhop, &scenes, MaskMode::Refined);
+    let (_, raw_iou) = evaluate(&sdhop, &scenes, MaskMode::Raw);
+    let (plain_box, plain_mask) = evaluate(&plain, &scenes, MaskMode::Refined);
+    println!("SD-HOP: box IoU {box_iou:.3}, mask IoU refined {mask_iou:.3} raw {raw_iou:.3}");
+    println!("plain : box IoU {plain_box:.3}, mask IoU {plain_mask:.3}");
+    assert!(box_iou >= 0.7, "box IoU {box_iou}");
+    assert!(mask_iou >= 0.7, "mask IoU {mask_iou}");
+    // Without occlusion reasoning the mask is the whole box.
+    assert!(mask_iou > plain_mask + 0.1, "{mask_iou} vs plain {plain_mask}");
+    assert!(box_iou >= plain_box - 0.02, "{box_iou} vs plain {plain_box}");
+}
+
+#[test]
+fn pruning_returns_exactly_the_unpruned_detections() {
+    let scenes = scenes(3);
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let detector = Detector::new(&model.views).unwrap();
+    for s in &scenes {
+        let pyr = FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        for max_detections in [1, 5] {
+            let mut p = DetectParams {
+                max_detections,
+                ..model.meta.detection
+            };
+            p.prune = true;
+            let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
+            p.prune = false;
+            let (full, st_f) = detector.detect(&pyr, &p).unwrap();
+            assert_eq!(pruned, full, "max_detections {max_detections}");
+            assert!(!full.is_empty());
+            assert_eq!(st_p.locations, st_f.locations);
+            assert_eq!(st_f.min_cuts, st_f.locations);
+            assert!(st_p.min_cuts * 10 < st_p.locations, "{st_p:?}");
+        }
+    }
+}
+
+#[test]
+fn response_json_has_the_detect_shape() {
+    let s = &scenes(1)[0];
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let opts = DetectOptions {
+        masks: MaskMode::Both,
+        max_detections: Some(3),
+        ..DetectOptions::default()
+    };
+    let resp = detect_image(&s.image, &[&model], &opts).unwrap();
+    let v = serde_json::to_value(&resp).unwrap();
+    assert_eq!(v["image"]["width"], 320);
+    assert_eq!(v["image"]["height"], 240);
+    let d = &v["detections"][0];
+    assert_eq!(d["label"], "synthetic");
+    assert_eq!(d["model"], "synthetic");
+    for key in ["x", "y", "width", "height"] {
+        assert!(d["box"][key].is_number());
+    }
+    assert_eq!(d["mask"]["size"], serde_json::json!([240, 320]));
+    let counts: u64 = d["mask"]["counts"].as_array().unwrap().iter().map(|c| c.as_u64().unwrap()).sum();
+    assert_eq!(counts, 240 * 320);
+    assert!(d["raw_mask"]["counts"].is_array());
+    assert!(d["visible_fraction"].as_f64().unwrap() > 0.0);
+    assert!(v["timing_ms"]["total"].as_f64().unwrap() > 0.0);
+    // Masks can be left out.
+    let none = detect_image(&s.image, &[&model], &DetectOptions { masks: MaskMode::None, ..opts }).unwrap();
+    let v = serde_json::to_value(&none).unwrap();
+    assert!(v["detections"][0].get("mask").is_none() && v["detections"][0].get("raw_mask").is_none());
+}
+
+#[test]
+fn objects_cut_by_the_border_get_their_full_box() {
+    // Shift an unoccluded scene so the object leaves the image on the left.
+    let s = &scene(
+        &OBJECT,
+        &SceneParams {
+            seed: 2,
+            occlusion: (0.0, 0.0),
+            ..SceneParams::default()
+        },
+    )
+    .unwrap();
+    let (tx, ty, tw, th) = s.truth_box;
+    let shift = (tx + 0.35 * tw).round() as usize;
+    let (w, h) = (s.image.width(), s.image.height());
+    let mut data = Vec::with_capacity(w * h * 3);
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3 {
+                data.push(s.image.get((x + shift).min(w - 1), y, c));
+            }
+        }
+    }
+    let img = ColorImage::new(w, h, data).unwrap();
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let opts = DetectOptions {
+        max_detections: Some(1),
+        ..DetectOptions::default()
+    };
+    let resp = detect_image(&img, &[&model], &opts).unwrap();
+    let d = resp.detections.first().expect("a detection");
+    let truth = (tx - shift as f64, ty, tw, th);
+    let iou = box_iou((d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height), truth);
+    assert!(d.truncated && d.bbox.x < 0.0, "{d:?}");
+    assert!(iou >= 0.6, "IoU {iou} for {d:?} vs {truth:?}");
+}
+
+#[test]
+fn bad_inputs_give_errors_or_empty_results() {
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let opts = DetectOptions::default();
+    // Zero-size images cannot even be built.
+    assert!(matches!(ColorImage::new(0, 10, vec![]), Err(VisionError::EmptyImage { .. })));
+    // Smaller than one cell, and smaller than the template: empty results.
+    for (w, h) in [(5, 5), (40, 30), (1, 300)] {
+        let img = ColorImage::new(w, h, vec![100.0; w * h * 3]).unwrap();
+        let resp = detect_image(&img, &[&model], &opts).unwrap();
+        assert!(resp.detections.is_empty(), "{w}x{h}");
+    }
+    // Too many pixels.
+    let img = ColorImage::new(64, 64, vec![0.0; 64 * 64 * 3]).unwrap();
+    let small = DetectOptions { max_pixels: 1000, ..opts };
+    assert!(matches!(detect_image(&img, &[&model], &small), Err(VisionError::ImageTooLarge { .. })));
+    // Non-finite weights are refused before any scan.
+    let mut bad = model.clone();
+    bad.views[0].w_vis[3] = f32::NAN;
+    assert!(Detector::new(&bad.views).is_err());
+    assert!(bad.to_bytes().is_err());
+    // Invalid detection parameters.
+    let pyr = FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+    let det = Detector::new(&model.views).unwrap();
+    let p = DetectParams { max_truncation: 1.0, ..model.meta.detection };
+    assert!(det.detect(&pyr, &p).is_err());
+    // A flat image has nothing above the threshold.
+    let flat = ColorImage::new(320, 240, vec![90.0; 320 * 240 * 3]).unwrap();
+    assert!(detect_image(&flat, &[&model], &opts).unwrap().detections.is_empty());
+}
