@@ -1,1 +1,102 @@
-fn main(){}
+//! Detector speed on one 640x480 synthetic scene, one viewpoint with an
+//! 18x16-cell template and the default pyramid: median per-image time and
+//! per-stage times, and the fraction of locations pruned.
+//!
+//! `cargo bench --bench detect` (add `-- --iters N` for more runs).
+
+use std::time::Instant;
+
+use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
+use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let iters = args
+        .iter()
+        .position(|a| a == "--iters")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(30usize);
+    let obj = SynthObject {
+        cols: 18,
+        rows: 16,
+        seed: 3,
+    };
+    let model = hand_model(&obj, "synthetic", true, &HandModelParams::default()).expect("model");
+    let scenes: Vec<_> = (0..5u64)
+        .map(|seed| {
+            scene(
+                &obj,
+                &SceneParams {
+                    width: 640,
+                    height: 480,
+                    seed,
+                    ..SceneParams::default()
+                },
+            )
+            .expect("scene")
+        })
+        .collect();
+    println!("threads: {}", rayon::current_num_threads());
+    for (mode, max_det, prune) in [
+        ("top-1", 1, true),
+        ("threshold, 10 best", 10, true),
+        ("no pruning, top-1", 1, false),
+    ] {
+        let opts = DetectOptions {
+            max_detections: Some(max_det),
+            masks: MaskMode::Refined,
+            prune,
+            ..DetectOptions::default()
+        };
+        let runs = if prune { iters } else { 3.min(iters) };
+        let mut stage: [Vec<f64>; 7] = Default::default();
+        let mut pruned = Vec::new();
+        for i in 0..runs {
+            let s = &scenes[i % scenes.len()];
+            let t = Instant::now();
+            let r = detect_image(&s.image, &[&model], &opts).expect("detect");
+            let wall = t.elapsed().as_secs_f64() * 1e3;
+            let tm = &r.timing_ms;
+            for (k, v) in [
+                wall,
+                tm.features,
+                tm.segmentation,
+                tm.cell_segments,
+                tm.responses,
+                tm.mincut,
+                tm.masks,
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                stage[k].push(v);
+            }
+            pruned.push(tm.pruned_fraction);
+        }
+        let names = [
+            "total",
+            "features",
+            "segmentation",
+            "cell-segments",
+            "responses+bounds",
+            "min-cuts",
+            "masks",
+        ];
+        let line: Vec<String> = names
+            .iter()
+            .zip(stage.iter_mut())
+            .map(|(n, v)| format!("{n} {:.1}", median(v)))
+            .collect();
+        println!(
+            "{mode:<20} median ms over {runs}: {}; pruned {:.2}%",
+            line.join(", "),
+            100.0 * median(&mut pruned)
+        );
+    }
+}

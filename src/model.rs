@@ -103,7 +103,9 @@ fn f32_bytes(v: impl Iterator<Item = f32>) -> Vec<u8> {
 }
 
 fn strip(padded: &[f32]) -> impl Iterator<Item = f32> + '_ {
-    padded.chunks(HOG_STRIDE).flat_map(|c| c[..HOG_DIM].iter().copied())
+    padded
+        .chunks(HOG_STRIDE)
+        .flat_map(|c| c[..HOG_DIM].iter().copied())
 }
 
 impl Model {
@@ -140,7 +142,10 @@ impl Model {
             )));
         }
         if m.hop_k == 0 || m.hop_k > 64 {
-            return Err(ModelError::Invalid(format!("K = {} out of range 1..=64", m.hop_k)));
+            return Err(ModelError::Invalid(format!(
+                "K = {} out of range 1..=64",
+                m.hop_k
+            )));
         }
         if m.viewpoints.is_empty() || m.viewpoints.len() != self.views.len() {
             return Err(ModelError::Invalid(format!(
@@ -182,10 +187,26 @@ impl Model {
         let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
         for (a, w) in self.views.iter().enumerate() {
             let (r, c) = (w.rows, w.cols);
-            buffers.push((format!("view{a}.w_vis"), vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_vis))));
-            buffers.push((format!("view{a}.w_occ"), vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_occ))));
-            buffers.push((format!("view{a}.w_prior"), vec![r, c], f32_bytes(w.w_prior.iter().copied())));
-            buffers.push((format!("view{a}.w_hop"), vec![w.w_hop.len()], f32_bytes(w.w_hop.iter().copied())));
+            buffers.push((
+                format!("view{a}.w_vis"),
+                vec![r, c, HOG_DIM],
+                f32_bytes(strip(&w.w_vis)),
+            ));
+            buffers.push((
+                format!("view{a}.w_occ"),
+                vec![r, c, HOG_DIM],
+                f32_bytes(strip(&w.w_occ)),
+            ));
+            buffers.push((
+                format!("view{a}.w_prior"),
+                vec![r, c],
+                f32_bytes(w.w_prior.iter().copied()),
+            ));
+            buffers.push((
+                format!("view{a}.w_hop"),
+                vec![w.w_hop.len()],
+                f32_bytes(w.w_hop.iter().copied()),
+            ));
             buffers.push((
                 format!("view{a}.scalars"),
                 vec![3],
@@ -200,7 +221,8 @@ impl Model {
                     .map_err(|e| ModelError::Format(e.to_string()))
             })
             .collect::<Result<_, _>>()?;
-        let meta = serde_json::to_string(&self.meta).map_err(|e| ModelError::Meta(e.to_string()))?;
+        let meta =
+            serde_json::to_string(&self.meta).map_err(|e| ModelError::Meta(e.to_string()))?;
         let info = HashMap::from([(META_KEY.to_string(), meta)]);
         safetensors::serialize(views, Some(info)).map_err(|e| ModelError::Format(e.to_string()))
     }
@@ -296,6 +318,7 @@ impl Model {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 
@@ -320,7 +343,11 @@ mod tests {
             pyramid: PyramidParams::default(),
             segmentation: SegmentParams::default(),
             detection: DetectParams::default(),
-            viewpoints: vec![ViewMeta { label: "cup".into(), rows: 2, cols: 3 }],
+            viewpoints: vec![ViewMeta {
+                label: "cup".into(),
+                rows: 2,
+                cols: 3,
+            }],
             provenance: serde_json::json!({"made_by": "test"}),
         };
         Model::new(meta, vec![w]).unwrap()
@@ -345,7 +372,10 @@ mod tests {
         for cut in [0, 1, 7, 8, 20, bytes.len() / 2, bytes.len() - 1] {
             assert!(Model::from_bytes(&bytes[..cut]).is_err(), "cut at {cut}");
         }
-        assert!(matches!(Model::load(Path::new("/nonexistent/x.safetensors")), Err(ModelError::Io { .. })));
+        assert!(matches!(
+            Model::load(Path::new("/nonexistent/x.safetensors")),
+            Err(ModelError::Io { .. })
+        ));
     }
 
     #[test]
@@ -359,19 +389,32 @@ mod tests {
         assert!(matches!(bad.validate(), Err(ModelError::Weights(_))));
         let mut bad = m.clone();
         bad.views[0].bias = f32::INFINITY;
-        assert!(matches!(bad.validate(), Err(ModelError::Weights(VisionError::NonFinite(_)))));
+        assert!(matches!(
+            bad.validate(),
+            Err(ModelError::Weights(VisionError::NonFinite(_)))
+        ));
         let mut bad = m.clone();
         bad.meta.format_version = 99;
-        assert!(matches!(bad.validate(), Err(ModelError::Version { found: 99 })));
+        assert!(matches!(
+            bad.validate(),
+            Err(ModelError::Version { found: 99 })
+        ));
         // A file whose metadata claims a different template than its tensors.
         let mut meta_only = m.clone();
         meta_only.meta.viewpoints[0].cols = 4;
         meta_only.views[0] = ViewWeights::zeros(2, 4, 4);
         let mut bytes = meta_only.to_bytes().unwrap();
-        let needle = b"\"cols\":4";
-        let at = bytes.windows(needle.len()).position(|w| w == needle).unwrap();
+        // The metadata JSON sits escaped inside the header JSON.
+        let needle = b"cols\\\":4";
+        let at = bytes
+            .windows(needle.len())
+            .position(|w| w == needle)
+            .unwrap();
         bytes[at + needle.len() - 1] = b'5';
         let text = bytes;
-        assert!(matches!(Model::from_bytes(&text), Err(ModelError::Shape { .. })));
+        assert!(matches!(
+            Model::from_bytes(&text),
+            Err(ModelError::Shape { .. })
+        ));
     }
 }

@@ -129,9 +129,10 @@ pub fn detect_image(
     let mut detections: Vec<DetectionJson> = Vec::new();
     for model in models {
         let m = &model.meta;
-        let idx = match pyramids.iter().position(|p| {
-            p.params == m.pyramid && p.seg_params == m.segmentation
-        }) {
+        let idx = match pyramids
+            .iter()
+            .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
+        {
             Some(i) => i,
             None => {
                 let pyr = FeaturePyramid::build(img, &m.pyramid, &m.segmentation)?;
@@ -222,20 +223,28 @@ pub fn overlay(img: &ColorImage, resp: &DetectResponse) -> image::RgbImage {
     ];
     for (k, d) in resp.detections.iter().enumerate().rev() {
         let c = COLORS[k % COLORS.len()];
-        if let Some(m) = d.mask.as_ref().or(d.raw_mask.as_ref()).and_then(Mask::from_rle) {
+        if let Some(m) = d
+            .mask
+            .as_ref()
+            .or(d.raw_mask.as_ref())
+            .and_then(Mask::from_rle)
+        {
             for y in 0..m.height {
                 for x in 0..m.width {
                     if m.get(x, y) {
                         let p = out.get_pixel_mut(x as u32, y as u32);
-                        for ch in 0..3 {
-                            p.0[ch] = ((u16::from(p.0[ch]) + u16::from(c[ch])) / 2) as u8;
+                        for (v, tint) in p.0.iter_mut().zip(c) {
+                            *v = ((u16::from(*v) + u16::from(tint)) / 2) as u8;
                         }
                     }
                 }
             }
         }
         let (x0, y0) = (d.bbox.x.round() as i64, d.bbox.y.round() as i64);
-        let (x1, y1) = (x0 + d.bbox.width.round() as i64 - 1, y0 + d.bbox.height.round() as i64 - 1);
+        let (x1, y1) = (
+            x0 + d.bbox.width.round() as i64 - 1,
+            y0 + d.bbox.height.round() as i64 - 1,
+        );
         for t in 0..2 {
             for x in x0..=x1 {
                 for y in [y0 + t, y1 - t] {

@@ -67,12 +67,26 @@ impl SynthObject {
         let d = ((u - ru).powi(2) + (v - rv).powi(2)).sqrt();
         let ring = (d * 14.0).sin();
         let k = if s > 0.0 { 1.0 } else { 0.35 } * if ring > 0.6 { 0.5 } else { 1.0 };
-        Some([(base[0] * k) as f32, (base[1] * k) as f32, (base[2] * k) as f32])
+        Some([
+            (base[0] * k) as f32,
+            (base[1] * k) as f32,
+            (base[2] * k) as f32,
+        ])
     }
 
     /// Paints the object with its top-left at `(x0, y0)` and size `w x h`
     /// pixels; returns its mask over the image.
-    pub fn paint(&self, img: &mut [f32], width: usize, height: usize, x0: f64, y0: f64, w: f64, h: f64) -> Mask {
+    #[allow(clippy::too_many_arguments)]
+    pub fn paint(
+        &self,
+        img: &mut [f32],
+        width: usize,
+        height: usize,
+        x0: f64,
+        y0: f64,
+        w: f64,
+        h: f64,
+    ) -> Mask {
         let mut mask = Mask::new(width, height);
         let xs = x0.floor().max(0.0) as usize;
         let ys = y0.floor().max(0.0) as usize;
@@ -162,8 +176,14 @@ fn background(width: usize, height: usize, rng: &mut SplitMix64) -> Vec<f32> {
     }
     let rects = 6 + rng.range_usize(0, 6);
     for _ in 0..rects {
-        let (rw, rh) = (rng.range_usize(10, width / 3), rng.range_usize(10, height / 3));
-        let (rx, ry) = (rng.range_usize(0, width - rw), rng.range_usize(0, height - rh));
+        let (rw, rh) = (
+            rng.range_usize(10, width / 3),
+            rng.range_usize(10, height / 3),
+        );
+        let (rx, ry) = (
+            rng.range_usize(0, width - rw),
+            rng.range_usize(0, height - rh),
+        );
         let col: Vec<f32> = (0..3).map(|_| rng.range_f64(50.0, 200.0) as f32).collect();
         for y in ry..ry + rh {
             for x in rx..rx + rw {
@@ -173,7 +193,10 @@ fn background(width: usize, height: usize, rng: &mut SplitMix64) -> Vec<f32> {
     }
     let lines = 4 + rng.range_usize(0, 6);
     for _ in 0..lines {
-        let (x0, y0) = (rng.range_f64(0.0, width as f64), rng.range_f64(0.0, height as f64));
+        let (x0, y0) = (
+            rng.range_f64(0.0, width as f64),
+            rng.range_f64(0.0, height as f64),
+        );
         let a = rng.range_f64(0.0, std::f64::consts::PI);
         let len = rng.range_f64(20.0, width as f64 / 2.0);
         let shade = rng.range_f64(20.0, 230.0) as f32;
@@ -249,7 +272,15 @@ pub fn object_template(obj: &SynthObject) -> Result<Vec<[f32; HOG_DIM]>, VisionE
     let margin = 2 * CELL_SIZE;
     let (w, h) = (obj.width_px() + 2 * margin, obj.height_px() + 2 * margin);
     let mut img = vec![128.0f32; w * h * 3];
-    obj.paint(&mut img, w, h, margin as f64, margin as f64, obj.width_px() as f64, obj.height_px() as f64);
+    obj.paint(
+        &mut img,
+        w,
+        h,
+        margin as f64,
+        margin as f64,
+        obj.width_px() as f64,
+        obj.height_px() as f64,
+    );
     let map = hog(&ColorImage::new(w, h, img)?);
     let off = (margin / CELL_SIZE) as isize;
     Ok((0..obj.rows)

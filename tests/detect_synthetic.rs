@@ -42,7 +42,10 @@ fn evaluate(model: &Model, scenes: &[Scene], masks: MaskMode) -> (f64, f64) {
     for s in scenes {
         let resp = detect_image(&s.image, &[model], &opts).unwrap();
         if let Some(d) = resp.detections.first() {
-            b += box_iou((d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height), s.truth_box);
+            b += box_iou(
+                (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                s.truth_box,
+            );
             let rle = d.mask.as_ref().or(d.raw_mask.as_ref()).unwrap();
             m += Mask::from_rle(rle).unwrap().iou(&s.visible);
         }
@@ -64,8 +67,14 @@ fn finds_full_box_and_visible_mask_and_beats_plain_hog() {
     assert!(box_iou >= 0.7, "box IoU {box_iou}");
     assert!(mask_iou >= 0.7, "mask IoU {mask_iou}");
     // Without occlusion reasoning the mask is the whole box.
-    assert!(mask_iou > plain_mask + 0.1, "{mask_iou} vs plain {plain_mask}");
-    assert!(box_iou >= plain_box - 0.02, "{box_iou} vs plain {plain_box}");
+    assert!(
+        mask_iou > plain_mask + 0.1,
+        "{mask_iou} vs plain {plain_mask}"
+    );
+    assert!(
+        box_iou >= plain_box - 0.02,
+        "{box_iou} vs plain {plain_box}"
+    );
 }
 
 #[test]
@@ -74,7 +83,8 @@ fn pruning_returns_exactly_the_unpruned_detections() {
     let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
     let detector = Detector::new(&model.views).unwrap();
     for s in &scenes {
-        let pyr = FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        let pyr =
+            FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
         for max_detections in [1, 5] {
             let mut p = DetectParams {
                 max_detections,
@@ -113,15 +123,30 @@ fn response_json_has_the_detect_shape() {
         assert!(d["box"][key].is_number());
     }
     assert_eq!(d["mask"]["size"], serde_json::json!([240, 320]));
-    let counts: u64 = d["mask"]["counts"].as_array().unwrap().iter().map(|c| c.as_u64().unwrap()).sum();
+    let counts: u64 = d["mask"]["counts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_u64().unwrap())
+        .sum();
     assert_eq!(counts, 240 * 320);
     assert!(d["raw_mask"]["counts"].is_array());
     assert!(d["visible_fraction"].as_f64().unwrap() > 0.0);
     assert!(v["timing_ms"]["total"].as_f64().unwrap() > 0.0);
     // Masks can be left out.
-    let none = detect_image(&s.image, &[&model], &DetectOptions { masks: MaskMode::None, ..opts }).unwrap();
+    let none = detect_image(
+        &s.image,
+        &[&model],
+        &DetectOptions {
+            masks: MaskMode::None,
+            ..opts
+        },
+    )
+    .unwrap();
     let v = serde_json::to_value(&none).unwrap();
-    assert!(v["detections"][0].get("mask").is_none() && v["detections"][0].get("raw_mask").is_none());
+    assert!(
+        v["detections"][0].get("mask").is_none() && v["detections"][0].get("raw_mask").is_none()
+    );
 }
 
 #[test]
@@ -166,7 +191,10 @@ fn bad_inputs_give_errors_or_empty_results() {
     let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
     let opts = DetectOptions::default();
     // Zero-size images cannot even be built.
-    assert!(matches!(ColorImage::new(0, 10, vec![]), Err(VisionError::EmptyImage { .. })));
+    assert!(matches!(
+        ColorImage::new(0, 10, vec![]),
+        Err(VisionError::EmptyImage { .. })
+    ));
     // Smaller than one cell, and smaller than the template: empty results.
     for (w, h) in [(5, 5), (40, 30), (1, 300)] {
         let img = ColorImage::new(w, h, vec![100.0; w * h * 3]).unwrap();
@@ -175,8 +203,14 @@ fn bad_inputs_give_errors_or_empty_results() {
     }
     // Too many pixels.
     let img = ColorImage::new(64, 64, vec![0.0; 64 * 64 * 3]).unwrap();
-    let small = DetectOptions { max_pixels: 1000, ..opts };
-    assert!(matches!(detect_image(&img, &[&model], &small), Err(VisionError::ImageTooLarge { .. })));
+    let small = DetectOptions {
+        max_pixels: 1000,
+        ..opts
+    };
+    assert!(matches!(
+        detect_image(&img, &[&model], &small),
+        Err(VisionError::ImageTooLarge { .. })
+    ));
     // Non-finite weights are refused before any scan.
     let mut bad = model.clone();
     bad.views[0].w_vis[3] = f32::NAN;
@@ -185,9 +219,15 @@ fn bad_inputs_give_errors_or_empty_results() {
     // Invalid detection parameters.
     let pyr = FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
     let det = Detector::new(&model.views).unwrap();
-    let p = DetectParams { max_truncation: 1.0, ..model.meta.detection };
+    let p = DetectParams {
+        max_truncation: 1.0,
+        ..model.meta.detection
+    };
     assert!(det.detect(&pyr, &p).is_err());
     // A flat image has nothing above the threshold.
     let flat = ColorImage::new(320, 240, vec![90.0; 320 * 240 * 3]).unwrap();
-    assert!(detect_image(&flat, &[&model], &opts).unwrap().detections.is_empty());
+    assert!(detect_image(&flat, &[&model], &opts)
+        .unwrap()
+        .detections
+        .is_empty());
 }

@@ -6,14 +6,20 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use sdhop::model::Model;
-use sdhop::pipeline::{detect_image, overlay, DetectOptions, DetectResponse, MaskMode, DEFAULT_MAX_PIXELS};
+use sdhop::pipeline::{
+    detect_image, overlay, DetectOptions, DetectResponse, MaskMode, DEFAULT_MAX_PIXELS,
+};
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
 use sdhop::vision::detect::box_iou;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
 
 #[derive(Parser)]
-#[command(name = "sdhop-train", version, about = "SD-HOP occlusion-aware detector: companion tool")]
+#[command(
+    name = "sdhop-train",
+    version,
+    about = "SD-HOP occlusion-aware detector: companion tool"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -83,10 +89,16 @@ struct Failure {
 
 impl Failure {
     fn input(e: impl std::fmt::Display) -> Self {
-        Self { code: 2, message: e.to_string() }
+        Self {
+            code: 2,
+            message: e.to_string(),
+        }
     }
     fn io(e: impl std::fmt::Display) -> Self {
-        Self { code: 1, message: e.to_string() }
+        Self {
+            code: 1,
+            message: e.to_string(),
+        }
     }
 }
 
@@ -100,7 +112,12 @@ fn read_image(path: &Path, max_pixels: usize) -> Result<ColorImage, Failure> {
         .and_then(|r| r.with_guessed_format())
         .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?
         .into_dimensions()
-        .map_err(|e| Failure::input(format!("{}: not a readable PNG or JPEG: {e}", path.display())))?;
+        .map_err(|e| {
+            Failure::input(format!(
+                "{}: not a readable PNG or JPEG: {e}",
+                path.display()
+            ))
+        })?;
     if (w as usize).saturating_mul(h as usize) > max_pixels {
         return Err(Failure::input(format!(
             "{}: image of {w}x{h} pixels exceeds the limit of {max_pixels}",
@@ -110,7 +127,8 @@ fn read_image(path: &Path, max_pixels: usize) -> Result<ColorImage, Failure> {
     let img = reader
         .decode()
         .map_err(|e| Failure::input(format!("{}: cannot decode: {e}", path.display())))?;
-    ColorImage::from_rgb8(&img.to_rgb8()).map_err(|e| Failure::input(format!("{}: {e}", path.display())))
+    ColorImage::from_rgb8(&img.to_rgb8())
+        .map_err(|e| Failure::input(format!("{}: {e}", path.display())))
 }
 
 fn load_models(args: &DetectArgs) -> Result<Vec<Model>, Failure> {
@@ -136,7 +154,9 @@ fn load_models(args: &DetectArgs) -> Result<Vec<Model>, Failure> {
 fn write_json(resp: &DetectResponse, out: Option<&Path>) -> Result<(), Failure> {
     let text = serde_json::to_string_pretty(resp).map_err(Failure::io)?;
     match out {
-        Some(p) => std::fs::write(p, text).map_err(|e| Failure::io(format!("{}: {e}", p.display()))),
+        Some(p) => {
+            std::fs::write(p, text).map_err(|e| Failure::io(format!("{}: {e}", p.display())))
+        }
         None => {
             println!("{text}");
             Ok(())
@@ -165,8 +185,13 @@ fn run_detect(args: &DetectArgs) -> Result<(), Failure> {
 }
 
 fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
-    std::fs::create_dir_all(&args.out).map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
-    let obj = SynthObject { cols: 18, rows: 16, seed: 3 };
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
+    let obj = SynthObject {
+        cols: 18,
+        rows: 16,
+        seed: 3,
+    };
     let params = SceneParams {
         width: args.width,
         height: args.height,
@@ -174,7 +199,8 @@ fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
         ..SceneParams::default()
     };
     let sc = scene(&obj, &params).map_err(Failure::input)?;
-    let model = hand_model(&obj, "synthetic", true, &HandModelParams::default()).map_err(Failure::input)?;
+    let model =
+        hand_model(&obj, "synthetic", true, &HandModelParams::default()).map_err(Failure::input)?;
     let model_path = args.out.join("synthetic.safetensors");
     model.save(&model_path).map_err(Failure::io)?;
     let scene_path = args.out.join("scene.png");
@@ -195,27 +221,54 @@ fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
         .save(&overlay_path)
         .map_err(|e| Failure::io(format!("{}: {e}", overlay_path.display())))?;
     let (tx, ty, tw, th) = sc.truth_box;
-    println!("scene      {} ({}x{}), object box x={tx:.1} y={ty:.1} w={tw:.1} h={th:.1}, {:.0}% hidden",
-        scene_path.display(), args.width, args.height,
-        100.0 * (1.0 - sc.visible.area() as f64 / sc.object.area() as f64));
+    println!(
+        "scene      {} ({}x{}), object box x={tx:.1} y={ty:.1} w={tw:.1} h={th:.1}, {:.0}% hidden",
+        scene_path.display(),
+        args.width,
+        args.height,
+        100.0 * (1.0 - sc.visible.area() as f64 / sc.object.area() as f64)
+    );
     match resp.detections.first() {
         None => println!("detection  none above the threshold"),
         Some(d) => {
             let b = (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height);
             let miou = |r: &Option<sdhop::vision::mask::Rle>| {
-                r.as_ref().and_then(Mask::from_rle).map_or(0.0, |m| m.iou(&sc.visible))
+                r.as_ref()
+                    .and_then(Mask::from_rle)
+                    .map_or(0.0, |m| m.iou(&sc.visible))
             };
-            println!("detection  score {:.3}, box x={:.1} y={:.1} w={:.1} h={:.1}, box IoU {:.3}",
-                d.score, b.0, b.1, b.2, b.3, box_iou(b, sc.truth_box));
-            println!("mask IoU   raw {:.3}, refined {:.3} (visible fraction {:.2})",
-                miou(&d.raw_mask), miou(&d.mask), d.visible_fraction);
+            println!(
+                "detection  score {:.3}, box x={:.1} y={:.1} w={:.1} h={:.1}, box IoU {:.3}",
+                d.score,
+                b.0,
+                b.1,
+                b.2,
+                b.3,
+                box_iou(b, sc.truth_box)
+            );
+            println!(
+                "mask IoU   raw {:.3}, refined {:.3} (visible fraction {:.2})",
+                miou(&d.raw_mask),
+                miou(&d.mask),
+                d.visible_fraction
+            );
         }
     }
     let t = &resp.timing_ms;
     println!("timing ms  total {:.1}: features {:.1}, segmentation {:.1}, cell segments {:.1}, responses {:.1}, min-cuts {:.1}, masks {:.1}",
         t.total, t.features, t.segmentation, t.cell_segments, t.responses, t.mincut, t.masks);
-    println!("pruning    {} locations, {} min-cuts ({:.2}% pruned)", t.locations, t.min_cuts, 100.0 * t.pruned_fraction);
-    println!("wrote      {}, {}, {}", model_path.display(), args.out.join("detections.json").display(), overlay_path.display());
+    println!(
+        "pruning    {} locations, {} min-cuts ({:.2}% pruned)",
+        t.locations,
+        t.min_cuts,
+        100.0 * t.pruned_fraction
+    );
+    println!(
+        "wrote      {}, {}, {}",
+        model_path.display(),
+        args.out.join("detections.json").display(),
+        overlay_path.display()
+    );
     Ok(())
 }
 

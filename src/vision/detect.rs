@@ -95,6 +95,8 @@ pub struct DetectStats {
     pub locations: usize,
     pub pruned_stage1: usize,
     pub pruned_stage2: usize,
+    /// Skipped by the clique bound or the best energy found so far.
+    pub pruned_stage3: usize,
     pub min_cuts: usize,
     pub responses_ms: f64,
     pub mincut_ms: f64,
@@ -131,6 +133,9 @@ struct Candidate {
     level: usize,
     x: isize,
     y: isize,
+    /// Truncation, bias and the HOP bound: the part of every bound that does
+    /// not depend on the features.
+    base: f64,
     bound: f64,
 }
 
@@ -197,6 +202,51 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     dot_body(a, b)
 }
 
+/// `sum_c min(w_vis_c . phi_c, w_occ_c . phi_c + R_c)` over the cells of one
+/// template row (the exact best unary of every cell).
+#[inline(always)]
+fn row_min_sum_body(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
+    let mut sum = 0.0f32;
+    for (((a, b), f), r) in wv
+        .chunks_exact(HOG_STRIDE)
+        .zip(wo.chunks_exact(HOG_STRIDE))
+        .zip(feat.chunks_exact(HOG_STRIDE))
+        .zip(prior)
+    {
+        let mut fa = [0.0f32; 8];
+        let mut fb = [0.0f32; 8];
+        for k in 0..HOG_STRIDE / 8 {
+            for l in 0..8 {
+                let x = f[k * 8 + l];
+                fa[l] += a[k * 8 + l] * x;
+                fb[l] += b[k * 8 + l] * x;
+            }
+        }
+        let u1: f32 = fa.iter().sum();
+        let u0: f32 = fb.iter().sum::<f32>() + r;
+        sum += u1.min(u0);
+    }
+    sum
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn row_min_sum_avx2(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
+    row_min_sum_body(wv, wo, prior, feat)
+}
+
+fn row_min_sum(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the features were detected at run time.
+            return unsafe { row_min_sum_avx2(wv, wo, prior, feat) };
+        }
+    }
+    row_min_sum_body(wv, wo, prior, feat)
+}
+
 /// A feature map with a zero border, so a box partly outside the image reads
 /// zeros for its outside cells.
 struct PaddedMap {
@@ -258,13 +308,20 @@ impl<'a> Detector<'a> {
     /// Prepares the viewpoints; checks them first.
     pub fn new(views: &'a [ViewWeights]) -> Result<Self, VisionError> {
         if views.is_empty() {
-            return Err(VisionError::InvalidParameter("a model needs a viewpoint".into()));
+            return Err(VisionError::InvalidParameter(
+                "a model needs a viewpoint".into(),
+            ));
         }
         let views = views
             .iter()
             .map(|w| {
                 w.validate()?;
-                let bound_filter = w.w_vis.iter().zip(&w.w_occ).map(|(a, b)| a.min(*b)).collect();
+                let bound_filter = w
+                    .w_vis
+                    .iter()
+                    .zip(&w.w_occ)
+                    .map(|(a, b)| a.min(*b))
+                    .collect();
                 let prior_bound = w.w_prior.iter().map(|&r| f64::from(r).min(0.0)).sum();
                 let w_hop: Vec<f64> = w.w_hop.iter().map(|&v| f64::from(v)).collect();
                 let hop_min = w_hop[0].min(w_hop[w_hop.len() - 1]);
@@ -286,6 +343,7 @@ impl<'a> Detector<'a> {
         &self,
         level_idx: usize,
         level: &Level,
+        padded: &PaddedMap,
         vi: usize,
         params: &DetectParams,
         cut: f64,
@@ -303,7 +361,6 @@ impl<'a> Detector<'a> {
         }
         let (x_lo, x_hi) = positions(mw, cols, min_x);
         let (y_lo, y_hi) = positions(mh, rows, min_y);
-        let padded = PaddedMap::new(&level.hog, cols, rows);
         let mut out = Vec::new();
         let mut count = 0;
         for y in y_lo..=y_hi {
@@ -321,14 +378,13 @@ impl<'a> Detector<'a> {
                 } else {
                     view.hop_min * inside as f64
                 };
-                let mut bound = view.prior_bound
-                    + hop
-                    + f64::from(view.w.w_trunc) * truncated
-                    + f64::from(view.w.bias);
+                let base = hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias);
+                let mut bound = base + view.prior_bound;
                 if params.prune {
                     let mut resp = 0.0f32;
                     for ty in 0..rows {
-                        let f = &view.bound_filter[ty * cols * HOG_STRIDE..(ty + 1) * cols * HOG_STRIDE];
+                        let f = &view.bound_filter
+                            [ty * cols * HOG_STRIDE..(ty + 1) * cols * HOG_STRIDE];
                         resp += dot(f, padded.row(x, y + ty as isize, cols));
                     }
                     bound += f64::from(resp);
@@ -343,6 +399,7 @@ impl<'a> Detector<'a> {
                     level: level_idx,
                     x,
                     y,
+                    base,
                     bound,
                 });
             }
@@ -350,7 +407,24 @@ impl<'a> Detector<'a> {
         (count, out)
     }
 
-    /// Stage 2 and the min-cut at one candidate. `None` when pruned.
+    /// Stage 2a: the bound with every cell's exact best unary.
+    fn unary_bound(&self, padded: &PaddedMap, cand: &Candidate) -> f64 {
+        let w = self.views[cand.view].w;
+        let (rows, cols) = (w.rows, w.cols);
+        let stride = cols * HOG_STRIDE;
+        let mut u = 0.0f32;
+        for ty in 0..rows {
+            u += row_min_sum(
+                &w.w_vis[ty * stride..(ty + 1) * stride],
+                &w.w_occ[ty * stride..(ty + 1) * stride],
+                &w.w_prior[ty * cols..(ty + 1) * cols],
+                padded.row(cand.x, cand.y + ty as isize, cols),
+            );
+        }
+        cand.base + f64::from(u)
+    }
+
+    /// Stage 2b and the min-cut at one candidate. `None` when pruned.
     fn solve(
         &self,
         pyr: &FeaturePyramid,
@@ -437,20 +511,38 @@ impl<'a> Detector<'a> {
         }
         let cut = -params.threshold;
         let t = Instant::now();
+        let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
+        let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
+        let padded: Vec<PaddedMap> = pyr
+            .levels
+            .par_iter()
+            .map(|l| PaddedMap::new(&l.hog, pad_x, pad_y))
+            .collect();
         let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
             .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
             .collect();
         let scanned: Vec<(usize, Vec<Candidate>)> = jobs
             .par_iter()
-            .map(|&(l, v)| self.scan_level(l, &pyr.levels[l], v, params, cut))
+            .map(|&(l, v)| self.scan_level(l, &pyr.levels[l], &padded[l], v, params, cut))
             .collect();
-        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
         let mut cands: Vec<Candidate> = Vec::new();
         for (count, c) in scanned {
             stats.locations += count;
             cands.extend(c);
         }
         stats.pruned_stage1 = stats.locations - cands.len();
+        if params.prune {
+            // Stage 2a: exact best unaries, in bulk.
+            cands = cands
+                .into_par_iter()
+                .filter_map(|mut c| {
+                    c.bound = self.unary_bound(&padded[c.level], &c);
+                    (c.bound - margin(c.bound) <= cut).then_some(c)
+                })
+                .collect();
+        }
+        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - cands.len();
+        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
         // Visit in order of the bound (ties in a fixed order).
         cands.sort_by(|a, b| {
             a.bound
@@ -487,7 +579,8 @@ impl<'a> Detector<'a> {
                 }
             }
         }
-        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
+        stats.pruned_stage3 =
+            stats.locations - stats.pruned_stage1 - stats.pruned_stage2 - stats.min_cuts;
         stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let dets = self.suppress(pyr, solved, params);
@@ -505,8 +598,12 @@ impl<'a> Detector<'a> {
     ) -> Vec<Detection> {
         solved.sort_by(|a, b| {
             a.energy.total_cmp(&b.energy).then(
-                (a.cand.level, a.cand.view, a.cand.y, a.cand.x)
-                    .cmp(&(b.cand.level, b.cand.view, b.cand.y, b.cand.x)),
+                (a.cand.level, a.cand.view, a.cand.y, a.cand.x).cmp(&(
+                    b.cand.level,
+                    b.cand.view,
+                    b.cand.y,
+                    b.cand.x,
+                )),
             )
         });
         let mut out: Vec<Detection> = Vec::new();
@@ -573,6 +670,7 @@ pub fn detection_masks(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 

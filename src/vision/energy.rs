@@ -103,12 +103,21 @@ impl BoxProblem {
     pub fn validate(&self) -> Result<(), VisionError> {
         let n = self.len();
         if self.u1.len() != n || self.u0.len() != n || self.clique_of.len() != n {
-            return Err(VisionError::InvalidParameter("box problem buffers disagree".into()));
+            return Err(VisionError::InvalidParameter(
+                "box problem buffers disagree".into(),
+            ));
         }
         if self.w_hop.len() < 2 {
-            return Err(VisionError::InvalidParameter("w_hop needs K + 1 >= 2 values".into()));
+            return Err(VisionError::InvalidParameter(
+                "w_hop needs K + 1 >= 2 values".into(),
+            ));
         }
-        let finite = self.u1.iter().chain(&self.u0).chain(&self.w_hop).all(|v| v.is_finite())
+        let finite = self
+            .u1
+            .iter()
+            .chain(&self.u0)
+            .chain(&self.w_hop)
+            .all(|v| v.is_finite())
             && self.pairwise.is_finite()
             && self.constant.is_finite();
         if !finite {
@@ -120,7 +129,10 @@ impl BoxProblem {
                 self.pairwise
             )));
         }
-        if let Some(c) = hop_curvature(&self.w_hop).iter().find(|&&c| c < -CURVATURE_EPS) {
+        if let Some(c) = hop_curvature(&self.w_hop)
+            .iter()
+            .find(|&&c| c < -CURVATURE_EPS)
+        {
             return Err(VisionError::InvalidParameter(format!(
                 "w_hop must be concave (D^2 w >= 0), found curvature {c}"
             )));
@@ -130,7 +142,9 @@ impl BoxProblem {
             .iter()
             .any(|&c| c != NO_CLIQUE && c as usize >= self.n_cliques)
         {
-            return Err(VisionError::InvalidParameter("clique index out of range".into()));
+            return Err(VisionError::InvalidParameter(
+                "clique index out of range".into(),
+            ));
         }
         Ok(())
     }
@@ -348,16 +362,22 @@ impl ViewWeights {
     pub fn validate(&self) -> Result<(), VisionError> {
         let n = self.cells();
         if n == 0 {
-            return Err(VisionError::InvalidParameter("template has no cells".into()));
+            return Err(VisionError::InvalidParameter(
+                "template has no cells".into(),
+            ));
         }
         if self.w_vis.len() != n * HOG_STRIDE
             || self.w_occ.len() != n * HOG_STRIDE
             || self.w_prior.len() != n
         {
-            return Err(VisionError::InvalidParameter("weight blocks disagree with the template size".into()));
+            return Err(VisionError::InvalidParameter(
+                "weight blocks disagree with the template size".into(),
+            ));
         }
         if self.w_hop.len() < 2 {
-            return Err(VisionError::InvalidParameter("w_hop needs K + 1 >= 2 values".into()));
+            return Err(VisionError::InvalidParameter(
+                "w_hop needs K + 1 >= 2 values".into(),
+            ));
         }
         let all = self
             .w_vis
@@ -442,6 +462,7 @@ pub fn joint_feature(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use crate::vision::rng::SplitMix64;
@@ -468,14 +489,22 @@ mod tests {
     /// optionally leaving some cells outside the image (no clique).
     fn random_problem(rng: &mut SplitMix64, rows: usize, cols: usize) -> BoxProblem {
         let n = rows * cols;
-        let k = if rng.next_f64() < 0.7 { 4 } else { rng.range_usize(1, 7) };
+        let k = if rng.next_f64() < 0.7 {
+            4
+        } else {
+            rng.range_usize(1, 7)
+        };
         let mut p = BoxProblem::new(rows, cols, concave(rng, k));
         let scale = if rng.next_f64() < 0.5 { 0.125 } else { 1.0 };
         for i in 0..n {
             p.u1[i] = rng.range_f64(-3.0, 3.0) * scale;
             p.u0[i] = rng.range_f64(-3.0, 3.0) * scale;
         }
-        p.pairwise = if rng.next_f64() < 0.2 { 0.0 } else { rng.range_f64(0.0, 1.5) * scale };
+        p.pairwise = if rng.next_f64() < 0.2 {
+            0.0
+        } else {
+            rng.range_f64(0.0, 1.5) * scale
+        };
         p.w_hop.iter_mut().for_each(|w| *w *= scale);
         p.constant = rng.range_f64(-1.0, 1.0);
         let seeds = rng.range_usize(1, 5.min(n) + 1);
@@ -486,7 +515,7 @@ mod tests {
             lab[i] = s as u32;
         }
         // Grow: repeatedly give unlabelled cells the label of a labelled neighbour.
-        while lab.iter().any(|&l| l == u32::MAX) {
+        while lab.contains(&u32::MAX) {
             for i in 0..n {
                 let j = rng.range_usize(0, n);
                 order.swap(i, j);

@@ -154,14 +154,16 @@ pub fn hog(img: &ColorImage) -> HogMap {
     if cw == 0 || ch == 0 {
         return HogMap::zeros(cw, ch);
     }
-    let mut hist = vec![0.0f32; cw * ch * SENSITIVE_BINS];
+    // Histograms with a border of one cell on every side, so that votes need
+    // no bounds checks; the border is dropped before normalisation.
+    let hw = cw + 2;
+    let mut hist = vec![0.0f32; hw * (ch + 2) * SENSITIVE_BINS];
     let data = img.data();
-    let row = w * CHANNELS;
     let mut gx = vec![0.0f32; w];
     let mut gy = vec![0.0f32; w];
     let mut gm = vec![-1.0f32; w];
     let mut best = vec![0.0f32; w];
-    let mut bins = vec![0u8; w];
+    let mut bins = vec![0u32; w];
     // Horizontal interpolation tables.
     let xs: Vec<(isize, f32)> = (0..w)
         .map(|x| {
@@ -170,64 +172,97 @@ pub fn hog(img: &ColorImage) -> HogMap {
             (ix as isize, xp - ix)
         })
         .collect();
+    // Planar channels, so that rows of one channel are contiguous.
+    let planes: Vec<Vec<f32>> = (0..CHANNELS)
+        .map(|c| data.iter().skip(c).step_by(CHANNELS).copied().collect())
+        .collect();
+    let mut dxc = vec![0.0f32; w];
+    let mut dyc = vec![0.0f32; w];
     for y in 0..h {
         let yu = y.saturating_sub(1);
         let yd = (y + 1).min(h - 1);
-        let r = &data[y * row..(y + 1) * row];
-        let ru = &data[yu * row..(yu + 1) * row];
-        let rd = &data[yd * row..(yd + 1) * row];
         gm.iter_mut().for_each(|v| *v = -1.0);
-        for c in 0..CHANNELS {
-            for x in 0..w {
-                let xl = x.saturating_sub(1);
-                let xr = (x + 1).min(w - 1);
-                let dx = r[xr * CHANNELS + c] - r[xl * CHANNELS + c];
-                let dy = rd[x * CHANNELS + c] - ru[x * CHANNELS + c];
-                let m = dx * dx + dy * dy;
-                if m > gm[x] {
-                    gm[x] = m;
-                    gx[x] = dx;
-                    gy[x] = dy;
+        for plane in &planes {
+            let r = &plane[y * w..(y + 1) * w];
+            let ru = &plane[yu * w..(yu + 1) * w];
+            let rd = &plane[yd * w..(yd + 1) * w];
+            // Central differences, clamped at the borders.
+            if w >= 3 {
+                for (d, (a, b)) in dxc[1..w - 1].iter_mut().zip(r[2..].iter().zip(&r[..w - 2])) {
+                    *d = a - b;
                 }
+            }
+            dxc[0] = r[1.min(w - 1)] - r[0];
+            dxc[w - 1] = r[w - 1] - r[w.saturating_sub(2)];
+            for (d, (a, b)) in dyc.iter_mut().zip(rd.iter().zip(ru)) {
+                *d = a - b;
+            }
+            for ((((&dx, &dy), m), ox), oy) in dxc
+                .iter()
+                .zip(&dyc)
+                .zip(gm.iter_mut())
+                .zip(gx.iter_mut())
+                .zip(gy.iter_mut())
+            {
+                let mm = dx * dx + dy * dy;
+                let keep = f32::from(u8::from(mm <= *m));
+                *m = mm.max(*m);
+                *ox = keep * *ox + (1.0 - keep) * dx;
+                *oy = keep * *oy + (1.0 - keep) * dy;
             }
         }
         best.iter_mut().for_each(|v| *v = 0.0);
         bins.iter_mut().for_each(|v| *v = 0);
         for o in 0..INSENSITIVE_BINS {
             let (u, v) = (UU[o], VV[o]);
-            for x in 0..w {
-                let dot = u * gx[x] + v * gy[x];
-                if dot > best[x] {
-                    best[x] = dot;
-                    bins[x] = o as u8;
-                } else if -dot > best[x] {
-                    best[x] = -dot;
-                    bins[x] = (o + INSENSITIVE_BINS) as u8;
-                }
+            let (pos, neg) = (o as u32, (o + INSENSITIVE_BINS) as u32);
+            // Same choice as `orientation_bin`: the first direction with the
+            // largest |dot|, signed (dot > 0 and -dot > 0 exclude each other).
+            for (((&dx, &dy), bst), bin) in
+                gx.iter().zip(&gy).zip(best.iter_mut()).zip(bins.iter_mut())
+            {
+                // Branch-free selects: on noisy images the comparisons are
+                // unpredictable.
+                let dot = u * dx + v * dy;
+                let a = dot.abs();
+                let better = u32::from(a > *bst).wrapping_neg();
+                *bst = a.max(*bst);
+                let b = neg - u32::from(dot > 0.0) * (neg - pos);
+                *bin = (b & better) | (*bin & !better);
             }
         }
         let yp = cell_coord(y);
         let iy = yp.floor();
         let vy0 = yp - iy;
-        let iy = iy as isize;
+        // Row of the padded grid; rows beyond the border get no votes.
+        let iy = iy as isize + 1;
         for x in 0..w {
             let mag = gm[x].sqrt();
-            if mag == 0.0 {
+            let (ix, vx0) = xs[x];
+            if mag == 0.0 || ix + 1 < 0 || ix + 1 > cw as isize {
                 continue;
             }
-            let (ix, vx0) = xs[x];
             let b = bins[x] as usize;
-            let mut vote = |cx: isize, cy: isize, wgt: f32| {
-                if cx >= 0 && cy >= 0 && (cx as usize) < cw && (cy as usize) < ch {
-                    hist[(cy as usize * cw + cx as usize) * SENSITIVE_BINS + b] += wgt * mag;
+            let wx = [(1.0 - vx0) * mag, vx0 * mag];
+            for (dy, wy) in [(0isize, 1.0 - vy0), (1, vy0)] {
+                let row = iy + dy;
+                if row < 0 || row > ch as isize + 1 {
+                    continue;
                 }
-            };
-            vote(ix, iy, (1.0 - vx0) * (1.0 - vy0));
-            vote(ix + 1, iy, vx0 * (1.0 - vy0));
-            vote(ix, iy + 1, (1.0 - vx0) * vy0);
-            vote(ix + 1, iy + 1, vx0 * vy0);
+                let base = (row as usize * hw + (ix + 1) as usize) * SENSITIVE_BINS + b;
+                hist[base] += wx[0] * wy;
+                hist[base + SENSITIVE_BINS] += wx[1] * wy;
+            }
         }
     }
+    // Drop the border.
+    let mut inner = vec![0.0f32; cw * ch * SENSITIVE_BINS];
+    for cy in 0..ch {
+        let src = ((cy + 1) * hw + 1) * SENSITIVE_BINS;
+        inner[cy * cw * SENSITIVE_BINS..(cy + 1) * cw * SENSITIVE_BINS]
+            .copy_from_slice(&hist[src..src + cw * SENSITIVE_BINS]);
+    }
+    let hist = inner;
     normalise(&hist, cw, ch)
 }
 
@@ -362,6 +397,7 @@ pub fn hog_reference(img: &ColorImage) -> HogMap {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
@@ -381,7 +417,9 @@ mod tests {
 
     fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
         let mut rng = crate::vision::rng::SplitMix64::new(seed);
-        let data = (0..w * h * 3).map(|_| (rng.next_f64() * 255.0) as f32).collect();
+        let data = (0..w * h * 3)
+            .map(|_| (rng.next_f64() * 255.0) as f32)
+            .collect();
         ColorImage::new(w, h, data).unwrap()
     }
 

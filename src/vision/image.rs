@@ -161,6 +161,7 @@ fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 

@@ -138,7 +138,12 @@ impl CellGrid {
     pub fn pixel_range(&self, width: usize, height: usize) -> (usize, usize, usize, usize) {
         let (x, y, w, h) = self.pixel_box();
         let clip = |v: f64, hi: usize| v.round().clamp(0.0, hi as f64) as usize;
-        (clip(x, width), clip(y, height), clip(x + w, width), clip(y + h, height))
+        (
+            clip(x, width),
+            clip(y, height),
+            clip(x + w, width),
+            clip(y + h, height),
+        )
     }
 
     /// The box cell containing pixel `(px, py)`, if any.
@@ -187,12 +192,7 @@ impl Default for RefineParams {
 }
 
 /// Snaps a raw mask to the image segments inside the box.
-pub fn refine_mask(
-    raw: &Mask,
-    grid: &CellGrid,
-    seg: &Segmentation,
-    params: &RefineParams,
-) -> Mask {
+pub fn refine_mask(raw: &Mask, grid: &CellGrid, seg: &Segmentation, params: &RefineParams) -> Mask {
     let (x0, y0, x1, y1) = grid.pixel_range(raw.width, raw.height);
     let mut total = vec![0u32; seg.count()];
     let mut on = vec![0u32; seg.count()];
@@ -219,6 +219,7 @@ pub fn refine_mask(
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 
@@ -236,12 +237,24 @@ mod tests {
         let mut full = Mask::new(2, 2);
         full.data.iter_mut().for_each(|v| *v = 1);
         assert_eq!(full.to_rle().counts, vec![0, 4]);
-        assert!(Mask::from_rle(&Rle { size: [2, 2], counts: vec![1, 1] }).is_none());
+        assert!(Mask::from_rle(&Rle {
+            size: [2, 2],
+            counts: vec![1, 1]
+        })
+        .is_none());
     }
 
     #[test]
     fn cells_map_to_pixels() {
-        let grid = CellGrid { cell_x: -1, cell_y: 0, rows: 1, cols: 2, scale_x: 0.5, scale_y: 0.5, cell_size: 8 };
+        let grid = CellGrid {
+            cell_x: -1,
+            cell_y: 0,
+            rows: 1,
+            cols: 2,
+            scale_x: 0.5,
+            scale_y: 0.5,
+            cell_size: 8,
+        };
         // Box covers pixels x in [-16, 16), y in [0, 16).
         assert_eq!(grid.pixel_box(), (-16.0, 0.0, 32.0, 16.0));
         let m = raw_mask(&grid, &[true, false], 20, 20);
@@ -255,9 +268,19 @@ mod tests {
     #[test]
     fn refinement_fills_and_clears_segments() {
         // Two segments: left half (label 0) and right half (label 1) of 16x8.
-        let raw: Vec<u32> = (0..8).flat_map(|_| (0..16).map(|x| u32::from(x >= 8))).collect();
+        let raw: Vec<u32> = (0..8)
+            .flat_map(|_| (0..16).map(|x| u32::from(x >= 8)))
+            .collect();
         let seg = Segmentation::from_labels(16, 8, &raw).unwrap();
-        let grid = CellGrid { cell_x: 0, cell_y: 0, rows: 1, cols: 2, scale_x: 1.0, scale_y: 1.0, cell_size: 8 };
+        let grid = CellGrid {
+            cell_x: 0,
+            cell_y: 0,
+            rows: 1,
+            cols: 2,
+            scale_x: 1.0,
+            scale_y: 1.0,
+            cell_size: 8,
+        };
         let mut m = Mask::new(16, 8);
         for y in 0..8 {
             for x in 0..8 {
@@ -268,7 +291,15 @@ mod tests {
         let r = refine_mask(&m, &grid, &seg, &RefineParams::default());
         assert_eq!(r.area(), 64);
         assert!(r.get(0, 0) && !r.get(12, 3));
-        let keep = refine_mask(&m, &grid, &seg, &RefineParams { fill: 1.0, clear: 0.0 });
+        let keep = refine_mask(
+            &m,
+            &grid,
+            &seg,
+            &RefineParams {
+                fill: 1.0,
+                clear: 0.0,
+            },
+        );
         assert_eq!(keep, m);
     }
 }

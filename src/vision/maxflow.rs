@@ -457,6 +457,7 @@ pub fn edmonds_karp(cap: &[Vec<f64>]) -> f64 {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use crate::vision::rng::SplitMix64;
@@ -561,10 +562,16 @@ mod tests {
             build(&mut g, &inst);
             let flow = g.maxflow();
             let best = brute_force(&inst);
-            assert!((flow - best).abs() <= 1e-9 * (1.0 + best.abs()), "case {t}: {flow} vs {best}");
+            assert!(
+                (flow - best).abs() <= 1e-9 * (1.0 + best.abs()),
+                "case {t}: {flow} vs {best}"
+            );
             let side: Vec<bool> = (0..n).map(|i| g.is_source_side(i)).collect();
             let c = cut_cost(&inst, &side);
-            assert!((c - best).abs() <= 1e-9 * (1.0 + best.abs()), "case {t}: cut {c} vs {best}");
+            assert!(
+                (c - best).abs() <= 1e-9 * (1.0 + best.abs()),
+                "case {t}: cut {c} vs {best}"
+            );
         }
     }
 
@@ -580,10 +587,16 @@ mod tests {
             let flow = g.maxflow();
             let (cap, constant) = dense(&inst);
             let ek = edmonds_karp(&cap) + constant;
-            assert!((flow - ek).abs() <= 1e-7 * (1.0 + ek.abs()), "case {t}: {flow} vs {ek}");
+            assert!(
+                (flow - ek).abs() <= 1e-7 * (1.0 + ek.abs()),
+                "case {t}: {flow} vs {ek}"
+            );
             let side: Vec<bool> = (0..n).map(|i| g.is_source_side(i)).collect();
             let c = cut_cost(&inst, &side);
-            assert!((c - ek).abs() <= 1e-7 * (1.0 + ek.abs()), "case {t}: cut {c} vs {ek}");
+            assert!(
+                (c - ek).abs() <= 1e-7 * (1.0 + ek.abs()),
+                "case {t}: cut {c} vs {ek}"
+            );
         }
     }
 
@@ -595,7 +608,9 @@ mod tests {
         for t in 0..300 {
             let (w, h) = (rng.range_usize(1, 9), rng.range_usize(1, 9));
             let n = w * h;
-            let tw = (0..n).map(|_| (rng.range_f64(-2.0, 2.0), rng.range_f64(-2.0, 2.0))).collect();
+            let tw = (0..n)
+                .map(|_| (rng.range_f64(-2.0, 2.0), rng.range_f64(-2.0, 2.0)))
+                .collect();
             let mut edges = Vec::new();
             let pw = rng.next_f64();
             for y in 0..h {

@@ -175,6 +175,7 @@ impl FeaturePyramid {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 
@@ -187,7 +188,10 @@ mod tests {
         let img = ColorImage::new(64, 48, vec![10.0; 64 * 48 * 3]).unwrap();
         let pyr = FeaturePyramid::build(&img, &p, &SegmentParams::default()).unwrap();
         assert_eq!(pyr.levels.len(), 11);
-        assert_eq!((pyr.levels[0].hog.width(), pyr.levels[0].hog.height()), (8, 6));
+        assert_eq!(
+            (pyr.levels[0].hog.width(), pyr.levels[0].hog.height()),
+            (8, 6)
+        );
         for l in &pyr.levels {
             assert_eq!(l.cell_segments.len(), l.hog.width() * l.hog.height());
         }
@@ -196,11 +200,28 @@ mod tests {
     #[test]
     fn invalid_settings_are_refused() {
         let bad = [
-            PyramidParams { levels_per_octave: 0, ..Default::default() },
-            PyramidParams { min_scale: 0.0, ..Default::default() },
-            PyramidParams { min_scale: 2.0, max_scale: 1.0, ..Default::default() },
-            PyramidParams { max_scale: f32::NAN, ..Default::default() },
-            PyramidParams { levels_per_octave: 64, min_scale: 0.01, max_scale: 4.0 },
+            PyramidParams {
+                levels_per_octave: 0,
+                ..Default::default()
+            },
+            PyramidParams {
+                min_scale: 0.0,
+                ..Default::default()
+            },
+            PyramidParams {
+                min_scale: 2.0,
+                max_scale: 1.0,
+                ..Default::default()
+            },
+            PyramidParams {
+                max_scale: f32::NAN,
+                ..Default::default()
+            },
+            PyramidParams {
+                levels_per_octave: 64,
+                min_scale: 0.01,
+                max_scale: 4.0,
+            },
         ];
         for p in bad {
             assert!(p.validate().is_err(), "{p:?}");

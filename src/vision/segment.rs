@@ -309,11 +309,12 @@ pub fn segment(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation,
         }
     }
     radix_sort_by_key(&mut edges);
+    // Neighbour offsets per direction: no division when decoding an edge.
+    let offsets: [isize; 4] = DIRS.map(|(dx, dy)| dy * w as isize + dx);
     let endpoints = |e: u64| -> (u32, u32, f32) {
         let id = (e & 0xFFFF_FFFF) as usize;
-        let (p, k) = (id / 4, id % 4);
-        let (dx, dy) = DIRS[k];
-        let q = ((p / w) as isize + dy) as usize * w + ((p % w) as isize + dx) as usize;
+        let p = id >> 2;
+        let q = (p as isize + offsets[id & 3]) as usize;
         (p as u32, q as u32, f32::from_bits((e >> 32) as u32))
     };
     let mut sets = DisjointSets::new(n);
@@ -368,6 +369,7 @@ fn compact(w: usize, h: usize, raw: Vec<u32>) -> Result<Segmentation, VisionErro
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
 
@@ -377,7 +379,12 @@ mod tests {
         for y in 0..h {
             for x in 0..w {
                 let q = (x >= w / 2) as usize + 2 * (y >= h / 2) as usize;
-                let c = [[250.0, 10.0, 10.0], [10.0, 250.0, 10.0], [10.0, 10.0, 250.0], [250.0, 250.0, 10.0]][q];
+                let c = [
+                    [250.0, 10.0, 10.0],
+                    [10.0, 250.0, 10.0],
+                    [10.0, 10.0, 250.0],
+                    [250.0, 250.0, 10.0],
+                ][q];
                 d.extend_from_slice(&c);
             }
         }
@@ -387,23 +394,45 @@ mod tests {
     #[test]
     fn flat_quadrants_give_four_segments() {
         let img = blocks(40, 30);
-        let s = segment(&img, &SegmentParams { sigma: 0.0, k: 10.0, min_size: 1 }).unwrap();
+        let s = segment(
+            &img,
+            &SegmentParams {
+                sigma: 0.0,
+                k: 10.0,
+                min_size: 1,
+            },
+        )
+        .unwrap();
         assert_eq!(s.count(), 4);
         assert_eq!(s.label(0, 0), 0);
         assert_eq!(s.label(39, 0), 1);
         assert_eq!(s.label(0, 29), 2);
         assert_eq!(s.label(39, 29), 3);
         // Smoothing blurs the borders; min_size merges the thin strips away.
-        let s2 = segment(&img, &SegmentParams { sigma: 0.8, k: 10.0, min_size: 100 }).unwrap();
+        let s2 = segment(
+            &img,
+            &SegmentParams {
+                sigma: 0.8,
+                k: 10.0,
+                min_size: 100,
+            },
+        )
+        .unwrap();
         assert_eq!(s2.count(), 4);
     }
 
     #[test]
     fn deterministic_and_min_size_respected() {
         let mut rng = crate::vision::rng::SplitMix64::new(9);
-        let data: Vec<f32> = (0..50 * 40 * 3).map(|_| (rng.next_f64() * 255.0) as f32).collect();
+        let data: Vec<f32> = (0..50 * 40 * 3)
+            .map(|_| (rng.next_f64() * 255.0) as f32)
+            .collect();
         let img = ColorImage::new(50, 40, data).unwrap();
-        let p = SegmentParams { sigma: 0.5, k: 200.0, min_size: 30 };
+        let p = SegmentParams {
+            sigma: 0.5,
+            k: 200.0,
+            min_size: 30,
+        };
         let a = segment(&img, &p).unwrap();
         let b = segment(&img, &p).unwrap();
         assert_eq!(a, b);
@@ -415,9 +444,19 @@ mod tests {
     #[test]
     fn single_pixel_segments_are_fine() {
         let mut rng = crate::vision::rng::SplitMix64::new(3);
-        let data: Vec<f32> = (0..9 * 7 * 3).map(|_| (rng.next_f64() * 255.0) as f32).collect();
+        let data: Vec<f32> = (0..9 * 7 * 3)
+            .map(|_| (rng.next_f64() * 255.0) as f32)
+            .collect();
         let img = ColorImage::new(9, 7, data).unwrap();
-        let s = segment(&img, &SegmentParams { sigma: 0.0, k: 0.0, min_size: 1 }).unwrap();
+        let s = segment(
+            &img,
+            &SegmentParams {
+                sigma: 0.0,
+                k: 0.0,
+                min_size: 1,
+            },
+        )
+        .unwrap();
         // k = 0 merges only identical neighbours: random colours stay apart.
         assert_eq!(s.count(), 63);
         let cells = s.cell_labels(9, 7, 1, 0, 8);
@@ -428,11 +467,23 @@ mod tests {
     fn invalid_params_are_refused() {
         let img = blocks(8, 8);
         for p in [
-            SegmentParams { sigma: -1.0, ..Default::default() },
-            SegmentParams { k: f32::NAN, ..Default::default() },
-            SegmentParams { min_size: 0, ..Default::default() },
+            SegmentParams {
+                sigma: -1.0,
+                ..Default::default()
+            },
+            SegmentParams {
+                k: f32::NAN,
+                ..Default::default()
+            },
+            SegmentParams {
+                min_size: 0,
+                ..Default::default()
+            },
         ] {
-            assert!(matches!(segment(&img, &p), Err(VisionError::InvalidParameter(_))));
+            assert!(matches!(
+                segment(&img, &p),
+                Err(VisionError::InvalidParameter(_))
+            ));
         }
     }
 
@@ -451,7 +502,9 @@ mod tests {
     #[test]
     fn cells_take_the_majority_segment() {
         // Left 5 columns label 0, the rest label 1, 16x8 image: 2 cells.
-        let raw: Vec<u32> = (0..8).flat_map(|_| (0..16).map(|x| u32::from(x >= 5))).collect();
+        let raw: Vec<u32> = (0..8)
+            .flat_map(|_| (0..16).map(|x| u32::from(x >= 5)))
+            .collect();
         let s = Segmentation::from_labels(16, 8, &raw).unwrap();
         assert_eq!(s.cell_labels(16, 8, 2, 1, 8), vec![0, 1]);
         // At half resolution one cell covers the whole image: label 1 wins 11:5.
