@@ -18,7 +18,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::energy::{BoxProblem, ViewWeights, NO_CLIQUE};
-use super::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
+use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
 use super::maxflow::Graph;
 use super::pyramid::{FeaturePyramid, Level};
@@ -94,9 +94,8 @@ pub struct Detection {
 pub struct DetectStats {
     pub locations: usize,
     pub pruned_stage1: usize,
-    pub pruned_stage2: usize,
     /// Skipped by the clique bound or the best energy found so far.
-    pub pruned_stage3: usize,
+    pub pruned_stage2: usize,
     pub min_cuts: usize,
     pub responses_ms: f64,
     pub mincut_ms: f64,
@@ -117,10 +116,6 @@ impl DetectStats {
 /// A viewpoint prepared for scanning.
 struct View<'a> {
     w: &'a ViewWeights,
-    /// Element-wise `min(w_vis, w_occ)`, the stage-1 filter.
-    bound_filter: Vec<f32>,
-    /// `sum_i min(0, R_i)`.
-    prior_bound: f64,
     /// `min(w_0, w_K)`, the smallest value of any clique potential.
     hop_min: f64,
     w_hop: Vec<f64>,
@@ -133,9 +128,6 @@ struct Candidate {
     level: usize,
     x: isize,
     y: isize,
-    /// Truncation, bias and the HOP bound: the part of every bound that does
-    /// not depend on the features.
-    base: f64,
     bound: f64,
 }
 
@@ -202,87 +194,97 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     dot_body(a, b)
 }
 
-/// `sum_c min(w_vis_c . phi_c, w_occ_c . phi_c + R_c)` over the cells of one
-/// template row (the exact best unary of every cell).
-#[inline(always)]
-fn row_min_sum_body(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
-    let mut sum = 0.0f32;
-    for (((a, b), f), r) in wv
-        .chunks_exact(HOG_STRIDE)
-        .zip(wo.chunks_exact(HOG_STRIDE))
-        .zip(feat.chunks_exact(HOG_STRIDE))
-        .zip(prior)
-    {
-        let mut fa = [0.0f32; 8];
-        let mut fb = [0.0f32; 8];
-        for k in 0..HOG_STRIDE / 8 {
-            for l in 0..8 {
-                let x = f[k * 8 + l];
-                fa[l] += a[k * 8 + l] * x;
-                fb[l] += b[k * 8 + l] * x;
-            }
-        }
-        let u1: f32 = fa.iter().sum();
-        let u0: f32 = fb.iter().sum::<f32>() + r;
-        sum += u1.min(u0);
-    }
-    sum
-}
+/// Lanes of the dense bound kernel: consecutive positions computed together.
+const LANES: usize = 8;
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn row_min_sum_avx2(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
-    row_min_sum_body(wv, wo, prior, feat)
-}
-
-fn row_min_sum(wv: &[f32], wo: &[f32], prior: &[f32], feat: &[f32]) -> f32 {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-        {
-            // SAFETY: the features were detected at run time.
-            return unsafe { row_min_sum_avx2(wv, wo, prior, feat) };
-        }
-    }
-    row_min_sum_body(wv, wo, prior, feat)
-}
-
-/// A feature map with a zero border, so a box partly outside the image reads
-/// zeros for its outside cells.
-struct PaddedMap {
+/// The HOG map of a level as one zero-padded plane per feature dimension, so
+/// that consecutive box positions read consecutive values.
+struct PlanarMap {
     pad_x: usize,
     pad_y: usize,
     width: usize,
+    plane_len: usize,
     data: Vec<f32>,
 }
 
-impl PaddedMap {
+impl PlanarMap {
     fn new(hog: &HogMap, pad_x: usize, pad_y: usize) -> Self {
-        let width = hog.width() + 2 * pad_x;
+        // Extra lanes on the right so a block of positions never reads past.
+        let width = hog.width() + 2 * pad_x + LANES;
         let height = hog.height() + 2 * pad_y;
-        let mut data = vec![0.0f32; width * height * HOG_STRIDE];
-        let row = hog.width() * HOG_STRIDE;
+        let plane_len = width * height;
+        let mut data = vec![0.0f32; plane_len * HOG_DIM];
         for y in 0..hog.height() {
-            let dst = ((y + pad_y) * width + pad_x) * HOG_STRIDE;
-            data[dst..dst + row].copy_from_slice(&hog.raw()[y * row..(y + 1) * row]);
+            for x in 0..hog.width() {
+                let o = (y + pad_y) * width + x + pad_x;
+                for (d, &v) in hog.cell(x, y).iter().enumerate() {
+                    data[d * plane_len + o] = v;
+                }
+            }
         }
         Self {
             pad_x,
             pad_y,
             width,
+            plane_len,
             data,
         }
     }
+}
 
-    /// The `cols` cells of row `y` starting at column `x` (signed, map
-    /// coordinates), contiguous.
-    #[inline]
-    fn row(&self, x: isize, y: isize, cols: usize) -> &[f32] {
-        let px = (x + self.pad_x as isize) as usize;
-        let py = (y + self.pad_y as isize) as usize;
-        let o = (py * self.width + px) * HOG_STRIDE;
-        &self.data[o..o + cols * HOG_STRIDE]
+/// Exact best-unary sums `sum_i min(F_i, B_i + R_i)` of the boxes whose
+/// top-left cells are `(x0 + k, y)` for `k` in `0..out.len()`.
+#[inline(always)]
+fn dense_row_body(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
+    let (rows, cols) = (w.rows, w.cols);
+    for (blk, chunk) in out.chunks_mut(LANES).enumerate() {
+        let mut acc = [0.0f32; LANES];
+        for ty in 0..rows {
+            let row = ((y + ty as isize) + map.pad_y as isize) as usize * map.width;
+            for tx in 0..cols {
+                let i = ty * cols + tx;
+                let base = row + (x0 + (blk * LANES + tx) as isize + map.pad_x as isize) as usize;
+                let wv = &w.w_vis[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
+                let wo = &w.w_occ[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
+                let mut f = [0.0f32; LANES];
+                let mut g = [0.0f32; LANES];
+                for (d, (&a, &b)) in wv.iter().zip(wo).enumerate() {
+                    let o = d * map.plane_len + base;
+                    let Ok(v) = <&[f32; LANES]>::try_from(&map.data[o..o + LANES]) else {
+                        continue;
+                    };
+                    for l in 0..LANES {
+                        f[l] += a * v[l];
+                        g[l] += b * v[l];
+                    }
+                }
+                let r = w.w_prior[i];
+                for l in 0..LANES {
+                    acc[l] += f[l].min(g[l] + r);
+                }
+            }
+        }
+        let n = chunk.len();
+        chunk.copy_from_slice(&acc[..n]);
     }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dense_row_avx2(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
+    dense_row_body(map, w, x0, y, out)
+}
+
+fn dense_row(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the features were detected at run time.
+            return unsafe { dense_row_avx2(map, w, x0, y, out) };
+        }
+    }
+    dense_row_body(map, w, x0, y, out)
 }
 
 /// Range of top-left positions along one axis whose box of `len` cells has
@@ -316,34 +318,22 @@ impl<'a> Detector<'a> {
             .iter()
             .map(|w| {
                 w.validate()?;
-                let bound_filter = w
-                    .w_vis
-                    .iter()
-                    .zip(&w.w_occ)
-                    .map(|(a, b)| a.min(*b))
-                    .collect();
-                let prior_bound = w.w_prior.iter().map(|&r| f64::from(r).min(0.0)).sum();
                 let w_hop: Vec<f64> = w.w_hop.iter().map(|&v| f64::from(v)).collect();
                 let hop_min = w_hop[0].min(w_hop[w_hop.len() - 1]);
-                Ok(View {
-                    w,
-                    bound_filter,
-                    prior_bound,
-                    hop_min,
-                    w_hop,
-                })
+                Ok(View { w, hop_min, w_hop })
             })
             .collect::<Result<Vec<_>, VisionError>>()?;
         Ok(Self { views })
     }
 
-    /// Stage 1 at every location of one level and viewpoint: the bound of each
-    /// location that passes `cut`, or every location when not pruning.
+    /// Stage 1 at every location of one level and viewpoint: the exact
+    /// best-unary bound of each location that passes `cut`, or every location
+    /// when not pruning.
     fn scan_level(
         &self,
         level_idx: usize,
         level: &Level,
-        padded: &PaddedMap,
+        map: &PlanarMap,
         vi: usize,
         params: &DetectParams,
         cut: f64,
@@ -363,11 +353,14 @@ impl<'a> Detector<'a> {
         let (y_lo, y_hi) = positions(mh, rows, min_y);
         let mut out = Vec::new();
         let mut count = 0;
+        let mut sums = vec![0.0f32; (x_hi - x_lo + 1) as usize];
         for y in y_lo..=y_hi {
             let oy = overlap(y, rows, mh);
-            for x in x_lo..=x_hi {
-                let ox = overlap(x, cols, mw);
-                let inside = ox * oy;
+            if params.prune {
+                dense_row(map, view.w, x_lo, y, &mut sums);
+            }
+            for (k, x) in (x_lo..=x_hi).enumerate() {
+                let inside = overlap(x, cols, mw) * oy;
                 if inside < min_inside {
                     continue;
                 }
@@ -379,49 +372,25 @@ impl<'a> Detector<'a> {
                     view.hop_min * inside as f64
                 };
                 let base = hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias);
-                let mut bound = base + view.prior_bound;
-                if params.prune {
-                    let mut resp = 0.0f32;
-                    for ty in 0..rows {
-                        let f = &view.bound_filter
-                            [ty * cols * HOG_STRIDE..(ty + 1) * cols * HOG_STRIDE];
-                        resp += dot(f, padded.row(x, y + ty as isize, cols));
-                    }
-                    bound += f64::from(resp);
-                    if bound - margin(bound) > cut {
+                let bound = if params.prune {
+                    let b = base + f64::from(sums[k]);
+                    if b - margin(b) > cut {
                         continue;
                     }
+                    b
                 } else {
-                    bound = f64::NEG_INFINITY;
-                }
+                    f64::NEG_INFINITY
+                };
                 out.push(Candidate {
                     view: vi,
                     level: level_idx,
                     x,
                     y,
-                    base,
                     bound,
                 });
             }
         }
         (count, out)
-    }
-
-    /// Stage 2a: the bound with every cell's exact best unary.
-    fn unary_bound(&self, padded: &PaddedMap, cand: &Candidate) -> f64 {
-        let w = self.views[cand.view].w;
-        let (rows, cols) = (w.rows, w.cols);
-        let stride = cols * HOG_STRIDE;
-        let mut u = 0.0f32;
-        for ty in 0..rows {
-            u += row_min_sum(
-                &w.w_vis[ty * stride..(ty + 1) * stride],
-                &w.w_occ[ty * stride..(ty + 1) * stride],
-                &w.w_prior[ty * cols..(ty + 1) * cols],
-                padded.row(cand.x, cand.y + ty as isize, cols),
-            );
-        }
-        cand.base + f64::from(u)
     }
 
     /// Stage 2b and the min-cut at one candidate. `None` when pruned.
@@ -513,17 +482,24 @@ impl<'a> Detector<'a> {
         let t = Instant::now();
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
         let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
-        let padded: Vec<PaddedMap> = pyr
-            .levels
-            .par_iter()
-            .map(|l| PaddedMap::new(&l.hog, pad_x, pad_y))
-            .collect();
+        let maps: Vec<PlanarMap> = if params.prune {
+            pyr.levels
+                .par_iter()
+                .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let empty = PlanarMap::new(&HogMap::zeros(0, 0), 0, 0);
         let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
             .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
             .collect();
         let scanned: Vec<(usize, Vec<Candidate>)> = jobs
             .par_iter()
-            .map(|&(l, v)| self.scan_level(l, &pyr.levels[l], &padded[l], v, params, cut))
+            .map(|&(l, v)| {
+                let map = maps.get(l).unwrap_or(&empty);
+                self.scan_level(l, &pyr.levels[l], map, v, params, cut)
+            })
             .collect();
         let mut cands: Vec<Candidate> = Vec::new();
         for (count, c) in scanned {
@@ -531,17 +507,6 @@ impl<'a> Detector<'a> {
             cands.extend(c);
         }
         stats.pruned_stage1 = stats.locations - cands.len();
-        if params.prune {
-            // Stage 2a: exact best unaries, in bulk.
-            cands = cands
-                .into_par_iter()
-                .filter_map(|mut c| {
-                    c.bound = self.unary_bound(&padded[c.level], &c);
-                    (c.bound - margin(c.bound) <= cut).then_some(c)
-                })
-                .collect();
-        }
-        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - cands.len();
         stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
         // Visit in order of the bound (ties in a fixed order).
         cands.sort_by(|a, b| {
@@ -579,8 +544,7 @@ impl<'a> Detector<'a> {
                 }
             }
         }
-        stats.pruned_stage3 =
-            stats.locations - stats.pruned_stage1 - stats.pruned_stage2 - stats.min_cuts;
+        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
         stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let dets = self.suppress(pyr, solved, params);

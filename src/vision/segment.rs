@@ -22,6 +22,15 @@ pub struct SegmentParams {
     pub k: f32,
     /// Minimum segment size in pixels (1 keeps every segment).
     pub min_size: usize,
+    /// Segment an image this many times smaller (area-averaged), then give
+    /// every pixel the label of its low-resolution pixel: a speed knob. 1 =
+    /// full resolution. `sigma` and `min_size` stay in full-resolution pixels.
+    #[serde(default = "one")]
+    pub downsample: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 impl Default for SegmentParams {
@@ -30,6 +39,7 @@ impl Default for SegmentParams {
             sigma: 0.8,
             k: 300.0,
             min_size: 50,
+            downsample: 2,
         }
     }
 }
@@ -46,6 +56,12 @@ impl SegmentParams {
             return Err(VisionError::InvalidParameter(format!(
                 "segmentation k must be finite and >= 0, got {}",
                 self.k
+            )));
+        }
+        if !(1..=8).contains(&self.downsample) {
+            return Err(VisionError::InvalidParameter(format!(
+                "segmentation downsample must be in 1..=8, got {}",
+                self.downsample
             )));
         }
         if self.min_size == 0 {
@@ -277,6 +293,28 @@ fn radix_sort_by_key(items: &mut Vec<u64>) {
 /// Segments an image.
 pub fn segment(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation, VisionError> {
     params.validate()?;
+    let f = params.downsample;
+    if f == 1 {
+        return segment_full(img, params);
+    }
+    let (w, h) = (img.width(), img.height());
+    let (sw, sh) = (w.div_ceil(f), h.div_ceil(f));
+    let small = img.resize_area(sw, sh)?;
+    let p = SegmentParams {
+        sigma: params.sigma / f as f32,
+        min_size: params.min_size.div_ceil(f * f),
+        downsample: 1,
+        ..*params
+    };
+    let s = segment_full(&small, &p)?;
+    let raw: Vec<u32> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| s.label((x / f).min(sw - 1), (y / f).min(sh - 1)))
+        .collect();
+    compact(w, h, raw)
+}
+
+fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation, VisionError> {
     let smooth = gaussian_blur(img, params.sigma);
     let (w, h) = (smooth.width(), smooth.height());
     let n = w * h;
@@ -400,6 +438,7 @@ mod tests {
                 sigma: 0.0,
                 k: 10.0,
                 min_size: 1,
+                downsample: 1,
             },
         )
         .unwrap();
@@ -415,6 +454,7 @@ mod tests {
                 sigma: 0.8,
                 k: 10.0,
                 min_size: 100,
+                downsample: 1,
             },
         )
         .unwrap();
@@ -432,6 +472,7 @@ mod tests {
             sigma: 0.5,
             k: 200.0,
             min_size: 30,
+            downsample: 1,
         };
         let a = segment(&img, &p).unwrap();
         let b = segment(&img, &p).unwrap();
@@ -454,6 +495,7 @@ mod tests {
                 sigma: 0.0,
                 k: 0.0,
                 min_size: 1,
+                downsample: 1,
             },
         )
         .unwrap();
