@@ -89,7 +89,6 @@ pub struct DetectionJson {
 /// (features and segmentation run concurrently), and the pruning counts.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Timing {
-    pub decode: f64,
     pub features: f64,
     pub segmentation: f64,
     pub cell_segments: f64,

@@ -104,27 +104,25 @@ impl Failure {
 
 /// Reads an image, checking its declared size before decoding it.
 fn read_image(path: &Path, max_pixels: usize) -> Result<ColorImage, Failure> {
-    let reader = image::ImageReader::open(path)
-        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?
-        .with_guessed_format()
-        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
-    let (w, h) = image::ImageReader::open(path)
-        .and_then(|r| r.with_guessed_format())
-        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?
-        .into_dimensions()
-        .map_err(|e| {
-            Failure::input(format!(
-                "{}: not a readable PNG or JPEG: {e}",
-                path.display()
-            ))
-        })?;
+    let bytes = std::fs::read(path).map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(&bytes))
+            .with_guessed_format()
+            .map_err(|e| Failure::io(format!("{}: {e}", path.display())))
+    };
+    let (w, h) = reader()?.into_dimensions().map_err(|e| {
+        Failure::input(format!(
+            "{}: not a readable PNG or JPEG: {e}",
+            path.display()
+        ))
+    })?;
     if (w as usize).saturating_mul(h as usize) > max_pixels {
         return Err(Failure::input(format!(
             "{}: image of {w}x{h} pixels exceeds the limit of {max_pixels}",
             path.display()
         )));
     }
-    let img = reader
+    let img = reader()?
         .decode()
         .map_err(|e| Failure::input(format!("{}: cannot decode: {e}", path.display())))?;
     ColorImage::from_rgb8(&img.to_rgb8())

@@ -24,6 +24,27 @@ pub fn hop_curvature(w_hop: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// Checks what the min-cut construction needs of the CRF weights:
+/// `K + 1 >= 2` HOP weights, `W >= 0` and `D^2 w_hop >= -tolerance`.
+fn check_graph_weights(w_hop: &[f64], pairwise: f64, tolerance: f64) -> Result<(), VisionError> {
+    if w_hop.len() < 2 {
+        return Err(VisionError::InvalidParameter(
+            "w_hop needs K + 1 >= 2 values".into(),
+        ));
+    }
+    if pairwise < 0.0 {
+        return Err(VisionError::InvalidParameter(format!(
+            "pairwise weight W must be >= 0, got {pairwise}"
+        )));
+    }
+    if let Some(c) = hop_curvature(w_hop).iter().find(|&&c| c < -tolerance) {
+        return Err(VisionError::InvalidParameter(format!(
+            "w_hop must be concave (D^2 w >= 0), found curvature {c}"
+        )));
+    }
+    Ok(())
+}
+
 /// The interpolation feature `theta_c` of a clique of size `m` with `s`
 /// visible cells, accumulated into `out` (length `K + 1`).
 pub fn hop_theta_add(s: usize, m: usize, out: &mut [f64]) {
@@ -107,11 +128,6 @@ impl BoxProblem {
                 "box problem buffers disagree".into(),
             ));
         }
-        if self.w_hop.len() < 2 {
-            return Err(VisionError::InvalidParameter(
-                "w_hop needs K + 1 >= 2 values".into(),
-            ));
-        }
         let finite = self
             .u1
             .iter()
@@ -123,20 +139,7 @@ impl BoxProblem {
         if !finite {
             return Err(VisionError::NonFinite("energy terms"));
         }
-        if self.pairwise < 0.0 {
-            return Err(VisionError::InvalidParameter(format!(
-                "pairwise weight must be >= 0, got {}",
-                self.pairwise
-            )));
-        }
-        if let Some(c) = hop_curvature(&self.w_hop)
-            .iter()
-            .find(|&&c| c < -CURVATURE_EPS)
-        {
-            return Err(VisionError::InvalidParameter(format!(
-                "w_hop must be concave (D^2 w >= 0), found curvature {c}"
-            )));
-        }
+        check_graph_weights(&self.w_hop, self.pairwise, CURVATURE_EPS)?;
         if self
             .clique_of
             .iter()
@@ -249,15 +252,15 @@ impl BoxProblem {
         let n = self.len();
         let k = self.w_hop.len() - 1;
         let kf = k as f64;
-        let w = self.w_hop.clone();
-        let curv: Vec<f64> = hop_curvature(&w)
+        let curv: Vec<f64> = hop_curvature(&self.w_hop)
             .into_iter()
             .map(|c| if c > CURVATURE_EPS { c } else { 0.0 })
             .collect();
+        let first_slope = self.w_hop[1] - self.w_hop[0];
+        let clique_constant = self.w_hop[k] - kf * first_slope;
         self.gather_cliques();
         graph.reset();
         graph.add_nodes(n);
-        let first_slope = w[1] - w[0];
         let mut constant = self.constant;
         for i in 0..n {
             let mut u1 = self.u1[i];
@@ -280,7 +283,6 @@ impl BoxProblem {
                 }
             }
         }
-        let clique_constant = w[k] - kf * first_slope;
         for c in 0..self.n_cliques {
             let m = self.sizes[c];
             if m == 0 {
@@ -374,11 +376,6 @@ impl ViewWeights {
                 "weight blocks disagree with the template size".into(),
             ));
         }
-        if self.w_hop.len() < 2 {
-            return Err(VisionError::InvalidParameter(
-                "w_hop needs K + 1 >= 2 values".into(),
-            ));
-        }
         let all = self
             .w_vis
             .iter()
@@ -389,19 +386,9 @@ impl ViewWeights {
         if !all.into_iter().all(|v| v.is_finite()) {
             return Err(VisionError::NonFinite("weights"));
         }
-        if self.w_pair < 0.0 {
-            return Err(VisionError::InvalidParameter(format!(
-                "pairwise weight W must be >= 0, got {}",
-                self.w_pair
-            )));
-        }
+        // Stored as f32: allow their round-off in the curvature.
         let hop: Vec<f64> = self.w_hop.iter().map(|&v| f64::from(v)).collect();
-        if let Some(c) = hop_curvature(&hop).iter().find(|&&c| c < -1e-6) {
-            return Err(VisionError::InvalidParameter(format!(
-                "w_hop must satisfy D^2 w >= 0, found {c}"
-            )));
-        }
-        Ok(())
+        check_graph_weights(&hop, f64::from(self.w_pair), 1e-6)
     }
 
     /// The weights as one flat vector in joint-feature order.
