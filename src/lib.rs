@@ -7,7 +7,10 @@
 //! the detection JSON; [`synth`] generates synthetic scenes with exact
 //! ground truth.
 
+pub mod dataset;
+pub mod eval;
 pub mod model;
 pub mod pipeline;
 pub mod synth;
+pub mod train;
 pub mod vision;

@@ -114,7 +114,6 @@ pub fn detect_image(
     models: &[&Model],
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
-    let start = Instant::now();
     let (w, h) = (img.width(), img.height());
     if w.saturating_mul(h) > opts.max_pixels {
         return Err(VisionError::ImageTooLarge {
@@ -122,9 +121,55 @@ pub fn detect_image(
             height: h,
         });
     }
+    detect_with(w, h, models, opts, &mut Vec::new(), |m| {
+        FeaturePyramid::build(img, &m.meta.pyramid, &m.meta.segmentation)
+    })
+}
+
+/// Runs every model on an image whose pyramid is already built; models whose
+/// feature settings differ from the pyramid's are refused.
+pub fn detect_pyramid(
+    pyr: &FeaturePyramid,
+    models: &[&Model],
+    opts: &DetectOptions,
+) -> Result<DetectResponse, VisionError> {
+    for m in models {
+        if pyr.params != m.meta.pyramid || pyr.seg_params != m.meta.segmentation {
+            return Err(VisionError::InvalidParameter(format!(
+                "model {} needs other pyramid settings than the image's",
+                m.meta.name
+            )));
+        }
+    }
     let mut timing = Timing::default();
     let mut stats = DetectStats::default();
-    let mut pyramids: Vec<FeaturePyramid> = Vec::new();
+    let mut detections = Vec::new();
+    let start = Instant::now();
+    for model in models {
+        run_model(pyr, model, opts, &mut timing, &mut stats, &mut detections)?;
+    }
+    Ok(finish(
+        pyr.image_width,
+        pyr.image_height,
+        detections,
+        timing,
+        stats,
+        opts,
+        start,
+    ))
+}
+
+fn detect_with(
+    w: usize,
+    h: usize,
+    models: &[&Model],
+    opts: &DetectOptions,
+    pyramids: &mut Vec<FeaturePyramid>,
+    build: impl Fn(&Model) -> Result<FeaturePyramid, VisionError>,
+) -> Result<DetectResponse, VisionError> {
+    let start = Instant::now();
+    let mut timing = Timing::default();
+    let mut stats = DetectStats::default();
     let mut detections: Vec<DetectionJson> = Vec::new();
     for model in models {
         let m = &model.meta;
@@ -134,7 +179,7 @@ pub fn detect_image(
         {
             Some(i) => i,
             None => {
-                let pyr = FeaturePyramid::build(img, &m.pyramid, &m.segmentation)?;
+                let pyr = build(model)?;
                 timing.features += pyr.timing.features_ms;
                 timing.segmentation += pyr.timing.segmentation_ms;
                 timing.cell_segments += pyr.timing.cell_segments_ms;
@@ -142,54 +187,86 @@ pub fn detect_image(
                 pyramids.len() - 1
             }
         };
-        let pyr = &pyramids[idx];
-        let mut params = m.detection;
-        if let Some(t) = opts.threshold {
-            params.threshold = t;
-        }
-        if let Some(k) = opts.max_detections {
-            params.max_detections = k;
-        }
-        params.prune = opts.prune;
-        let detector = Detector::new(&model.views)?;
-        let (dets, s) = detector.detect(pyr, &params)?;
-        stats.locations += s.locations;
-        stats.min_cuts += s.min_cuts;
-        timing.responses += s.responses_ms;
-        timing.mincut += s.mincut_ms;
-        let t = Instant::now();
-        for d in dets {
-            let (raw, refined) = if opts.masks == MaskMode::None {
-                (None, None)
-            } else {
-                let (raw, refined) = detection_masks(&d, pyr, &params.refine);
-                let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
-                let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
-                (
-                    want_raw.then(|| raw.to_rle()),
-                    want_refined.then(|| refined.to_rle()),
-                )
-            };
-            detections.push(DetectionJson {
-                label: m.viewpoints[d.viewpoint].label.clone(),
-                model: m.name.clone(),
-                score: d.score,
-                bbox: BoxJson {
-                    x: d.bbox.0,
-                    y: d.bbox.1,
-                    width: d.bbox.2,
-                    height: d.bbox.3,
-                },
-                viewpoint: d.viewpoint,
-                level: d.level,
-                visible_fraction: d.visible_fraction,
-                truncated: d.truncated,
-                mask: refined,
-                raw_mask: raw,
-            });
-        }
-        timing.masks += t.elapsed().as_secs_f64() * 1e3;
+        run_model(
+            &pyramids[idx],
+            model,
+            opts,
+            &mut timing,
+            &mut stats,
+            &mut detections,
+        )?;
     }
+    Ok(finish(w, h, detections, timing, stats, opts, start))
+}
+
+/// One model's scan and masks, appended to `detections`.
+fn run_model(
+    pyr: &FeaturePyramid,
+    model: &Model,
+    opts: &DetectOptions,
+    timing: &mut Timing,
+    stats: &mut DetectStats,
+    detections: &mut Vec<DetectionJson>,
+) -> Result<(), VisionError> {
+    let m = &model.meta;
+    let mut params = m.detection;
+    if let Some(t) = opts.threshold {
+        params.threshold = t;
+    }
+    if let Some(k) = opts.max_detections {
+        params.max_detections = k;
+    }
+    params.prune = opts.prune;
+    let detector = Detector::new(&model.views)?;
+    let (dets, s) = detector.detect(pyr, &params)?;
+    stats.locations += s.locations;
+    stats.min_cuts += s.min_cuts;
+    timing.responses += s.responses_ms;
+    timing.mincut += s.mincut_ms;
+    let t = Instant::now();
+    for d in dets {
+        let (raw, refined) = if opts.masks == MaskMode::None {
+            (None, None)
+        } else {
+            let (raw, refined) = detection_masks(&d, pyr, &params.refine);
+            let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
+            let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
+            (
+                want_raw.then(|| raw.to_rle()),
+                want_refined.then(|| refined.to_rle()),
+            )
+        };
+        detections.push(DetectionJson {
+            label: m.viewpoints[d.viewpoint].label.clone(),
+            model: m.name.clone(),
+            score: d.score,
+            bbox: BoxJson {
+                x: d.bbox.0,
+                y: d.bbox.1,
+                width: d.bbox.2,
+                height: d.bbox.3,
+            },
+            viewpoint: d.viewpoint,
+            level: d.level,
+            visible_fraction: d.visible_fraction,
+            truncated: d.truncated,
+            mask: refined,
+            raw_mask: raw,
+        });
+    }
+    timing.masks += t.elapsed().as_secs_f64() * 1e3;
+    Ok(())
+}
+
+fn finish(
+    w: usize,
+    h: usize,
+    mut detections: Vec<DetectionJson>,
+    mut timing: Timing,
+    stats: DetectStats,
+    opts: &DetectOptions,
+    start: Instant,
+) -> DetectResponse {
     detections.sort_by(|a, b| b.score.total_cmp(&a.score));
     if let Some(k) = opts.max_detections {
         detections.truncate(k);
@@ -198,14 +275,14 @@ pub fn detect_image(
     timing.min_cuts = stats.min_cuts;
     timing.pruned_fraction = stats.pruned_fraction();
     timing.total = start.elapsed().as_secs_f64() * 1e3;
-    Ok(DetectResponse {
+    DetectResponse {
         image: ImageSize {
             width: w,
             height: h,
         },
         detections,
         timing_ms: timing,
-    })
+    }
 }
 
 /// Draws the detections over the image: visible pixels tinted, boxes outlined.

@@ -1,15 +1,22 @@
-//! The companion command-line tool: run the detector on an image, or on a
-//! synthetic scene it generates itself (training and evaluation come later).
+//! The companion command-line tool: train SD-HOP models (structured SVM),
+//! cross-validate and evaluate them on CMU_KO8, and run the detector on an
+//! image or on a synthetic scene it generates itself.
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use sdhop::dataset::load_coco;
 use sdhop::model::Model;
 use sdhop::pipeline::{
     detect_image, overlay, DetectOptions, DetectResponse, MaskMode, DEFAULT_MAX_PIXELS,
 };
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+use sdhop::train::ko8::{
+    cross_validate, detect_all, score, train_objects, Evaluation, Ko8Data, NegativeSet,
+};
+use sdhop::train::loss::LossKind;
+use sdhop::train::{progress_bar, train_model, PyramidCache, TrainParams};
 use sdhop::vision::detect::box_iou;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
@@ -72,8 +79,237 @@ struct DemoArgs {
     height: usize,
 }
 
+/// Every training setting; flags override the `--config` JSON file.
+#[derive(clap::Args, Clone)]
+struct TrainSettings {
+    /// JSON file with any of the training settings (see `TrainParams` in
+    /// the docs: c, k, template_scale, template, pyramid, segmentation,
+    /// max_truncation, epsilon, max_passes, max_inner, init_locations,
+    /// positive_share, loss, hop, pairwise, seed, threshold).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Regularisation constant C.
+    #[arg(long)]
+    c: Option<f64>,
+    /// Standard clique size K of the higher-order potentials.
+    #[arg(long)]
+    k: Option<usize>,
+    /// Template size as a fraction of the median training box.
+    #[arg(long)]
+    template_scale: Option<f64>,
+    /// Template size in cells, ROWSxCOLS (overrides --template-scale).
+    #[arg(long, value_parser = parse_template)]
+    template: Option<[usize; 2]>,
+    /// Pyramid levels per octave.
+    #[arg(long)]
+    levels_per_octave: Option<u32>,
+    /// Smallest pyramid scale.
+    #[arg(long)]
+    min_scale: Option<f32>,
+    /// Felzenszwalb-Huttenlocher k (segment size preference).
+    #[arg(long)]
+    seg_k: Option<f32>,
+    /// Stopping tolerance of the cutting-plane algorithm.
+    #[arg(long)]
+    epsilon: Option<f64>,
+    /// Full searches over every location, at most.
+    #[arg(long)]
+    max_passes: Option<usize>,
+    /// Iterations over cached locations per full search, at most.
+    #[arg(long)]
+    max_inner: Option<usize>,
+    /// Min-cuts per image in hard-example mining passes.
+    #[arg(long)]
+    mining_budget: Option<usize>,
+    /// Final full searches without a min-cut budget (exact).
+    #[arg(long)]
+    exact_passes: Option<usize>,
+    /// Random seed (initial locations).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Loss: sd-hop (eq. 3) or gao (ablation).
+    #[arg(long, value_enum)]
+    loss: Option<LossKind>,
+    /// Ablation: no higher-order potentials.
+    #[arg(long)]
+    no_hop: bool,
+    /// Ablation: no pairwise term.
+    #[arg(long)]
+    no_pairwise: bool,
+    /// Detection threshold saved in the models.
+    #[arg(long, allow_negative_numbers = true)]
+    threshold: Option<f64>,
+    /// Images of each other object used as negatives.
+    #[arg(long, default_value_t = 10)]
+    other_negatives: usize,
+    /// Negative scenes used (from negative/).
+    #[arg(long, default_value_t = 100)]
+    negative_scenes: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+fn parse_template(s: &str) -> Result<[usize; 2], String> {
+    let (r, c) = s.split_once('x').ok_or("expected ROWSxCOLS")?;
+    let r: usize = r.parse().map_err(|_| "bad rows")?;
+    let c: usize = c.parse().map_err(|_| "bad cols")?;
+    Ok([r, c])
+}
+
+impl TrainSettings {
+    fn params(&self) -> Result<(TrainParams, NegativeSet), Failure> {
+        let mut p = match &self.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+                serde_json::from_str(&text)
+                    .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?
+            }
+            None => TrainParams::default(),
+        };
+        if let Some(v) = self.c {
+            p.c = v;
+        }
+        if let Some(v) = self.k {
+            p.k = v;
+        }
+        if let Some(v) = self.template_scale {
+            p.template_scale = v;
+        }
+        if self.template.is_some() {
+            p.template = self.template;
+        }
+        if let Some(v) = self.levels_per_octave {
+            p.pyramid.levels_per_octave = v;
+        }
+        if let Some(v) = self.min_scale {
+            p.pyramid.min_scale = v;
+        }
+        if let Some(v) = self.seg_k {
+            p.segmentation.k = v;
+        }
+        if let Some(v) = self.epsilon {
+            p.epsilon = v;
+        }
+        if let Some(v) = self.max_passes {
+            p.max_passes = v;
+        }
+        if let Some(v) = self.max_inner {
+            p.max_inner = v;
+        }
+        if let Some(v) = self.mining_budget {
+            p.mining_budget = v;
+        }
+        if let Some(v) = self.exact_passes {
+            p.exact_passes = v;
+        }
+        if let Some(v) = self.seed {
+            p.seed = v;
+        }
+        if let Some(v) = self.loss {
+            p.loss = v;
+        }
+        if let Some(v) = self.threshold {
+            p.threshold = v;
+        }
+        p.hop &= !self.no_hop;
+        p.pairwise &= !self.no_pairwise;
+        p.validate().map_err(Failure::input)?;
+        if let Some(t) = self.threads {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build_global()
+                .map_err(Failure::io)?;
+        }
+        let neg = NegativeSet {
+            scenes: self.negative_scenes,
+            per_other_object: self.other_negatives,
+        };
+        Ok((p, neg))
+    }
+}
+
+#[derive(clap::Args)]
+struct TrainArgs {
+    /// CMU_KO8 root (with single/ and negative/).
+    #[arg(long, required_unless_present = "coco")]
+    ko8: Option<PathBuf>,
+    /// COCO-style JSON of your own objects (see the README).
+    #[arg(long, conflicts_with = "ko8", requires_all = ["images", "category"])]
+    coco: Option<PathBuf>,
+    /// Folder the COCO file names are relative to.
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// COCO category to train (repeat for several).
+    #[arg(long)]
+    category: Vec<String>,
+    /// Objects to train (CMU_KO8; default all eight).
+    #[arg(long, value_delimiter = ',')]
+    objects: Vec<String>,
+    /// Folder for the weights files (one per object, named after it).
+    #[arg(long, default_value = "models")]
+    out: PathBuf,
+    /// Cross-validation figures (JSON written by `cv`) to store in the
+    /// models' metadata.
+    #[arg(long)]
+    cv_report: Option<PathBuf>,
+    #[command(flatten)]
+    settings: TrainSettings,
+}
+
+#[derive(clap::Args)]
+struct CvArgs {
+    /// CMU_KO8 root.
+    #[arg(long)]
+    ko8: PathBuf,
+    #[arg(long, value_delimiter = ',')]
+    objects: Vec<String>,
+    #[arg(long, default_value_t = 5)]
+    folds: usize,
+    /// Values of C to compare (the best mean cross-object AUC wins).
+    #[arg(long, value_delimiter = ',', allow_negative_numbers = false)]
+    c_values: Vec<f64>,
+    /// Folder for the report, the per-image JSON responses and the plot.
+    #[arg(long, default_value = "out/cv")]
+    out: PathBuf,
+    /// Detections kept per image (as the acceptance procedure asks).
+    #[arg(long, default_value_t = 20)]
+    max_detections: usize,
+    #[command(flatten)]
+    settings: TrainSettings,
+}
+
+#[derive(clap::Args)]
+struct EvalArgs {
+    /// CMU_KO8 root.
+    #[arg(long)]
+    ko8: PathBuf,
+    /// Folder of weights files to evaluate.
+    #[arg(long, default_value = "models")]
+    models_dir: PathBuf,
+    #[arg(long, value_delimiter = ',')]
+    objects: Vec<String>,
+    /// Folder for the figures, the per-image JSON responses and the plot.
+    #[arg(long, default_value = "out/eval")]
+    out: PathBuf,
+    #[arg(long, default_value_t = 20)]
+    max_detections: usize,
+    /// Only every n-th image of each object (a quick check).
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+}
+
 #[derive(Subcommand)]
 enum Command {
+    /// Train one model per object (CMU_KO8 or a COCO-style file) and save
+    /// them as weights files.
+    Train(TrainArgs),
+    /// Cross-validate training on CMU_KO8 (k folds, every object), choose C,
+    /// and report AUC (per-object and cross-object) and segmentation errors.
+    Cv(CvArgs),
+    /// Evaluate weights files on CMU_KO8 images: figures, JSON and a plot.
+    Eval(EvalArgs),
     /// Detect objects in one image; prints the detection JSON of `POST /detect`.
     Detect(DetectArgs),
     /// Generate a synthetic occluded scene and a hand-built model of its object,
@@ -270,9 +506,254 @@ fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
     Ok(())
 }
 
+fn run_train(args: &TrainArgs) -> Result<(), Failure> {
+    let (params, neg) = args.settings.params()?;
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
+    let cv: Option<serde_json::Value> = match &args.cv_report {
+        Some(p) => Some(
+            serde_json::from_str(
+                &std::fs::read_to_string(p)
+                    .map_err(|e| Failure::io(format!("{}: {e}", p.display())))?,
+            )
+            .map_err(|e| Failure::input(format!("{}: {e}", p.display())))?,
+        ),
+        None => None,
+    };
+    let cache = PyramidCache::default();
+    let trained = if let Some(coco) = &args.coco {
+        let dir = args.images.clone().unwrap_or_default();
+        let mut out = Vec::new();
+        for cat in &args.category {
+            let loaded = load_coco(coco, &dir, cat).map_err(Failure::input)?;
+            for s in &loaded.skipped {
+                eprintln!("skipped: {s}");
+            }
+            let refs: Vec<_> = loaded.samples.iter().collect();
+            let pb = progress_bar(0, cat);
+            let r = train_model(cat, &refs, &cache, &params, &pb).map_err(Failure::input)?;
+            pb.finish_and_clear();
+            out.push(r);
+        }
+        out
+    } else {
+        let root = args
+            .ko8
+            .as_ref()
+            .ok_or_else(|| Failure::input("--ko8 or --coco is required"))?;
+        let data = Ko8Data::load(root, &args.objects).map_err(Failure::input)?;
+        for s in &data.skipped {
+            eprintln!("skipped: {s}");
+        }
+        train_objects(&data, None, &params, &neg, &cache).map_err(Failure::input)?
+    };
+    for (mut model, report) in trained {
+        if let Some(cv) = &cv {
+            let name = model.meta.name.clone();
+            let figures = cv["evaluation"]["objects"]
+                .as_array()
+                .and_then(|a| a.iter().find(|o| o["object"] == name.as_str()))
+                .cloned();
+            if let Some(obj) = model.meta.provenance.as_object_mut() {
+                obj.insert(
+                    "cross_validation".into(),
+                    serde_json::json!({
+                        "folds": cv["folds"],
+                        "c": cv["c"],
+                        "figures": figures,
+                        "mean": cv["evaluation"]["mean"],
+                    }),
+                );
+                obj.insert(
+                    "negatives".into(),
+                    serde_json::to_value(&neg).map_err(Failure::io)?,
+                );
+            }
+        }
+        let path = args.out.join(format!("{}.safetensors", model.meta.name));
+        model.save(&path).map_err(Failure::io)?;
+        eprintln!(
+            "{}: full-search violations {:?}, min-cuts {:?}",
+            model.meta.name, report.full_violation, report.full_min_cuts
+        );
+        println!(
+            "{:10} {}x{} cells, {} positives, {} negatives, {} passes, {} iterations, converged {}, {:.1} s (full {:.1}, cached {:.1}, qp {:.1}) -> {}",
+            model.meta.name,
+            model.views[0].rows,
+            model.views[0].cols,
+            report.positives,
+            report.negatives,
+            report.passes,
+            report.iterations,
+            report.converged,
+            report.seconds,
+            report.full_seconds,
+            report.cached_seconds,
+            report.qp_seconds,
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// Writes the per-image responses (`<id>.json`, the scorer's input), the
+/// figures and the plot into `out`.
+fn write_evaluation(
+    out: &Path,
+    ids: &[&str],
+    responses: &[DetectResponse],
+    report: &serde_json::Value,
+    evaluation: &Evaluation,
+    ko8: &Path,
+) -> Result<(), Failure> {
+    let pred = out.join("predictions");
+    std::fs::create_dir_all(&pred).map_err(|e| Failure::io(format!("{}: {e}", pred.display())))?;
+    for (id, r) in ids.iter().zip(responses) {
+        write_json(r, Some(&pred.join(format!("{id}.json"))))?;
+    }
+    let path = out.join("report.json");
+    let text = serde_json::to_string_pretty(report).map_err(Failure::io)?;
+    std::fs::write(&path, text).map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+    let plot = out.join("recall_fppi.png");
+    sdhop::eval::plot::recall_fppi_png(&evaluation.objects, &ko8.join("plots/single"), &plot)
+        .map_err(Failure::io)?;
+    println!("{}", sdhop::eval::table(&evaluation.objects));
+    println!(
+        "wrote {}, {} and {}",
+        path.display(),
+        plot.display(),
+        pred.display()
+    );
+    Ok(())
+}
+
+/// The best cross-validation so far: its key, report, figures, image ids
+/// and responses.
+type BestCv = (
+    f64,
+    serde_json::Value,
+    Evaluation,
+    Vec<String>,
+    Vec<DetectResponse>,
+);
+
+fn run_cv(args: &CvArgs) -> Result<(), Failure> {
+    let (mut params, neg) = args.settings.params()?;
+    if args.folds < 2 {
+        return Err(Failure::input("--folds must be at least 2"));
+    }
+    let data = Ko8Data::load(&args.ko8, &args.objects).map_err(Failure::input)?;
+    let cache = PyramidCache::default();
+    let cs = if args.c_values.is_empty() {
+        vec![params.c]
+    } else {
+        args.c_values.clone()
+    };
+    let mut best: Option<BestCv> = None;
+    let mut summary = Vec::new();
+    for &c in &cs {
+        params.c = c;
+        let t = std::time::Instant::now();
+        let cv = cross_validate(
+            &data,
+            args.folds,
+            &params,
+            &neg,
+            &cache,
+            args.max_detections,
+        )
+        .map_err(Failure::input)?;
+        let secs = t.elapsed().as_secs_f64();
+        println!(
+            "C = {c} ({secs:.0} s)\n{}",
+            sdhop::eval::table(&cv.evaluation.objects)
+        );
+        summary.push(serde_json::json!({"c": c, "mean": cv.evaluation.mean, "seconds": secs}));
+        let key = cv.evaluation.mean.auc_cross - 0.1 * cv.evaluation.mean.seg_error_refined;
+        if best.as_ref().is_none_or(|b| key > b.0) {
+            let report = serde_json::json!({
+                "folds": args.folds,
+                "c": c,
+                "params": params,
+                "negatives": neg,
+                "evaluation": strip_curves(&cv.evaluation),
+                "train_reports": cv.reports,
+            });
+            let ids = cv.images.iter().map(|s| s.id.clone()).collect();
+            best = Some((key, report, cv.evaluation, ids, cv.responses));
+        }
+    }
+    let Some((_, mut report, evaluation, ids, responses)) = best else {
+        return Err(Failure::input("no value of C to try"));
+    };
+    report["c_search"] = serde_json::Value::Array(summary);
+    let ids: Vec<&str> = ids.iter().map(|s| s.as_str()).collect();
+    println!("chosen C = {}", report["c"]);
+    write_evaluation(&args.out, &ids, &responses, &report, &evaluation, &args.ko8)
+}
+
+fn strip_curves(e: &Evaluation) -> serde_json::Value {
+    let mut e = e.clone();
+    for o in &mut e.objects {
+        o.curve = thin(&o.curve);
+        o.curve_cross = thin(&o.curve_cross);
+    }
+    serde_json::to_value(e).unwrap_or_default()
+}
+
+/// Every tenth point of a 1001-point curve (FPPI 0, 0.01, ..., 1).
+fn thin(c: &[f64]) -> Vec<f64> {
+    c.iter().step_by(10).copied().collect()
+}
+
+fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
+    let data = Ko8Data::load(&args.ko8, &args.objects).map_err(Failure::input)?;
+    let models = load_model_dir(&args.models_dir)?;
+    let refs: Vec<&Model> = models.iter().collect();
+    let every = args.every.max(1);
+    let images: Vec<_> = data
+        .images
+        .iter()
+        .flat_map(|imgs| imgs.iter().step_by(every))
+        .collect();
+    let cache = PyramidCache::default();
+    let m0 = refs.first().ok_or_else(|| Failure::input("no model"))?;
+    let pb = progress_bar(0, "pyramids");
+    cache
+        .fill(&images, &m0.meta.pyramid, &m0.meta.segmentation, &pb)
+        .map_err(Failure::input)?;
+    pb.finish_and_clear();
+    let responses =
+        detect_all(&images, &refs, &cache, args.max_detections).map_err(Failure::input)?;
+    let evaluation = score(&data, &images, &responses);
+    let report = serde_json::json!({
+        "models": models.iter().map(|m| &m.meta.name).collect::<Vec<_>>(),
+        "images": images.len(),
+        "evaluation": strip_curves(&evaluation),
+    });
+    let ids: Vec<&str> = images.iter().map(|s| s.id.as_str()).collect();
+    write_evaluation(&args.out, &ids, &responses, &report, &evaluation, &args.ko8)
+}
+
+fn load_model_dir(dir: &Path) -> Result<Vec<Model>, Failure> {
+    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .collect();
+    found.sort();
+    found
+        .iter()
+        .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))
+        .collect()
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
+        Command::Train(a) => run_train(a),
+        Command::Cv(a) => run_cv(a),
+        Command::Eval(a) => run_eval(a),
         Command::Detect(a) => run_detect(a),
         Command::Demo(a) => run_demo(a),
     };

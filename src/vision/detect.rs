@@ -121,6 +121,16 @@ struct View<'a> {
     w_hop: Vec<f64>,
 }
 
+/// A box location: a viewpoint's template placed with its top-left cell at
+/// `(x, y)` on a pyramid level (negative or past the edge when truncated).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Location {
+    pub level: usize,
+    pub view: usize,
+    pub y: isize,
+    pub x: isize,
+}
+
 /// A scanned location that survived stage 1.
 #[derive(Clone, Copy, Debug)]
 struct Candidate {
@@ -129,6 +139,37 @@ struct Candidate {
     x: isize,
     y: isize,
     bound: f64,
+}
+
+impl Candidate {
+    fn location(&self) -> Location {
+        Location {
+            level: self.level,
+            view: self.view,
+            y: self.y,
+            x: self.x,
+        }
+    }
+}
+
+/// A loss `Delta(y, y_hat)` that decomposes over a box's cells, for
+/// loss-augmented inference (paper section 2.3): at every location it adds a
+/// constant and per-cell Hamming terms to the energy, so the same min-cut
+/// finds `argmin_y_hat E(y_hat) - Delta(y, y_hat)`.
+pub trait LossAugment: Sync {
+    /// An upper bound on the loss of any output (subtracted from bounds).
+    fn max_loss(&self) -> f64;
+    /// Subtracts the loss of the box at `grid` from `problem`'s energy.
+    fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem);
+}
+
+/// The output of loss-augmented inference at one location.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Augmented {
+    pub location: Location,
+    pub cells: Vec<bool>,
+    /// `Delta - E` of this output: the larger, the more violated.
+    pub value: f64,
 }
 
 struct Solved {
@@ -329,6 +370,7 @@ impl<'a> Detector<'a> {
     /// Stage 1 at every location of one level and viewpoint: the exact
     /// best-unary bound of each location that passes `cut`, or every location
     /// when not pruning.
+    #[allow(clippy::too_many_arguments)]
     fn scan_level(
         &self,
         level_idx: usize,
@@ -337,6 +379,7 @@ impl<'a> Detector<'a> {
         vi: usize,
         params: &DetectParams,
         cut: f64,
+        max_loss: f64,
     ) -> (usize, Vec<Candidate>) {
         let view = &self.views[vi];
         let (rows, cols) = (view.w.rows, view.w.cols);
@@ -371,7 +414,8 @@ impl<'a> Detector<'a> {
                 } else {
                     view.hop_min * inside as f64
                 };
-                let base = hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias);
+                let base =
+                    hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias) - max_loss;
                 let bound = if params.prune {
                     let b = base + f64::from(sums[k]);
                     if b - margin(b) > cut {
@@ -394,21 +438,103 @@ impl<'a> Detector<'a> {
     }
 
     /// Stage 2b and the min-cut at one candidate. `None` when pruned.
+    #[allow(clippy::too_many_arguments)]
     fn solve(
         &self,
         pyr: &FeaturePyramid,
         cand: &Candidate,
         cut: f64,
         prune: bool,
+        aug: Option<&dyn LossAugment>,
         s: &mut Scratch,
     ) -> Option<Solved> {
-        let view = &self.views[cand.view];
+        self.fill_problem(pyr, &cand.location(), s, None);
+        if let Some(a) = aug {
+            a.augment(&self.grid(pyr, &cand.location()), &mut s.problem);
+        }
+        let p = &mut s.problem;
+        if prune {
+            let lb = p.lower_bound();
+            if lb - margin(lb) > cut {
+                return None;
+            }
+            let lb = p.lower_bound_without_pairwise();
+            if lb - margin(lb) > cut {
+                return None;
+            }
+        }
+        let energy = p.solve(&mut s.graph, &mut s.labels);
+        Some(Solved {
+            cand: *cand,
+            energy,
+            cells: s.labels.clone(),
+        })
+    }
+
+    /// The geometry of a location's box.
+    pub fn grid(&self, pyr: &FeaturePyramid, loc: &Location) -> CellGrid {
+        let w = self.views[loc.view].w;
+        let level = &pyr.levels[loc.level];
+        CellGrid {
+            cell_x: loc.x,
+            cell_y: loc.y,
+            rows: w.rows,
+            cols: w.cols,
+            scale_x: level.scale_x,
+            scale_y: level.scale_y,
+            cell_size: CELL_SIZE,
+        }
+    }
+
+    /// Every location of every level and viewpoint with at most
+    /// `max_truncation` of its cells outside the image.
+    pub fn locations(&self, pyr: &FeaturePyramid, max_truncation: f64) -> Vec<Location> {
+        let mut out = Vec::new();
+        for (li, level) in pyr.levels.iter().enumerate() {
+            for (vi, view) in self.views.iter().enumerate() {
+                let (rows, cols) = (view.w.rows, view.w.cols);
+                let n = rows * cols;
+                let (mw, mh) = (level.hog.width(), level.hog.height());
+                let min_inside = (((1.0 - max_truncation) * n as f64).ceil() as usize).max(1);
+                let (x_lo, x_hi) = positions(mw, cols, min_inside.div_ceil(rows).max(1));
+                let (y_lo, y_hi) = positions(mh, rows, min_inside.div_ceil(cols).max(1));
+                for y in y_lo..=y_hi {
+                    for x in x_lo..=x_hi {
+                        if overlap(x, cols, mw) * overlap(y, rows, mh) >= min_inside {
+                            out.push(Location {
+                                level: li,
+                                view: vi,
+                                y,
+                                x,
+                            });
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The CRF of a location (unaries, cliques, constant) into
+    /// `s.problem`; also the cells' HOG features when `features` is given.
+    /// Returns the number of cells outside the image.
+    fn fill_problem(
+        &self,
+        pyr: &FeaturePyramid,
+        loc: &Location,
+        s: &mut Scratch,
+        mut features: Option<&mut Vec<[f32; HOG_DIM]>>,
+    ) -> usize {
+        let view = &self.views[loc.view];
         let w = view.w;
-        let level = &pyr.levels[cand.level];
+        let level = &pyr.levels[loc.level];
         let (rows, cols) = (w.rows, w.cols);
         let (mw, mh) = (level.hog.width(), level.hog.height());
         if s.problem.rows != rows || s.problem.cols != cols || s.problem.w_hop != view.w_hop {
             s.problem = BoxProblem::new(rows, cols, view.w_hop.clone());
+        }
+        if let Some(f) = features.as_deref_mut() {
+            f.clear();
         }
         let nseg = pyr.segmentation.count();
         if s.seg_stamp.len() < nseg {
@@ -427,17 +553,25 @@ impl<'a> Detector<'a> {
         for ty in 0..rows {
             for tx in 0..cols {
                 let i = ty * cols + tx;
-                let (cx, cy) = (cand.x + tx as isize, cand.y + ty as isize);
+                let (cx, cy) = (loc.x + tx as isize, loc.y + ty as isize);
                 let prior = f64::from(w.w_prior[i]);
                 if cx < 0 || cy < 0 || cx as usize >= mw || cy as usize >= mh {
                     p.u1[i] = 0.0;
                     p.u0[i] = prior;
                     p.clique_of[i] = NO_CLIQUE;
                     truncated += 1;
+                    if let Some(f) = features.as_deref_mut() {
+                        f.push([0.0; HOG_DIM]);
+                    }
                     continue;
                 }
                 let (cx, cy) = (cx as usize, cy as usize);
                 let phi = level.hog.cell_padded(cx, cy);
+                if let Some(f) = features.as_deref_mut() {
+                    let mut c = [0.0f32; HOG_DIM];
+                    c.copy_from_slice(&phi[..HOG_DIM]);
+                    f.push(c);
+                }
                 let f = &w.w_vis[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
                 let b = &w.w_occ[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
                 p.u1[i] = f64::from(dot(f, phi));
@@ -453,18 +587,21 @@ impl<'a> Detector<'a> {
         }
         p.n_cliques = n_cliques as usize;
         p.constant = f64::from(w.w_trunc) * truncated as f64 + f64::from(w.bias);
-        if prune {
-            let lb = p.lower_bound();
-            if lb - margin(lb) > cut {
-                return None;
-            }
-        }
-        let energy = p.solve(&mut s.graph, &mut s.labels);
-        Some(Solved {
-            cand: *cand,
-            energy,
-            cells: s.labels.clone(),
-        })
+        truncated
+    }
+
+    /// The CRF of a location, the HOG features of its cells (zero outside
+    /// the image) and its number of cells outside the image: what
+    /// [`super::energy::joint_feature`] needs.
+    pub fn problem_at(
+        &self,
+        pyr: &FeaturePyramid,
+        loc: &Location,
+    ) -> (BoxProblem, Vec<[f32; HOG_DIM]>, usize) {
+        let mut s = Scratch::default();
+        let mut feats = Vec::new();
+        let truncated = self.fill_problem(pyr, loc, &mut s, Some(&mut feats));
+        (s.problem, feats, truncated)
     }
 
     /// Scans a pyramid. Returns the detections (best first) and statistics.
@@ -474,10 +611,97 @@ impl<'a> Detector<'a> {
         params: &DetectParams,
     ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
         params.validate()?;
-        let mut stats = DetectStats::default();
         if params.max_detections == 0 {
-            return Ok((Vec::new(), stats));
+            return Ok((Vec::new(), DetectStats::default()));
         }
+        let (solved, mut stats) = self.run(pyr, params, None, None);
+        let t = Instant::now();
+        let dets = self.suppress(pyr, solved, params);
+        stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok((dets, stats))
+    }
+
+    /// Loss-augmented inference over every location, level and viewpoint:
+    /// the output maximising `Delta - E`, if any beats `floor` (the value of
+    /// the empty output). Exact: pruned locations provably cannot beat the
+    /// best value found. Also returns every location found on the way that
+    /// beat the best value known when it was solved (hard examples).
+    /// With a `budget`, the search stops after about that many min-cuts
+    /// (in order of the bound) and is no longer exact.
+    pub fn most_violated(
+        &self,
+        pyr: &FeaturePyramid,
+        aug: &dyn LossAugment,
+        floor: f64,
+        max_truncation: f64,
+        budget: Option<usize>,
+    ) -> Result<(Option<Augmented>, Vec<Location>, DetectStats), VisionError> {
+        let params = DetectParams {
+            threshold: floor,
+            max_detections: 1,
+            max_truncation,
+            prune: true,
+            ..DetectParams::default()
+        };
+        params.validate()?;
+        let (solved, stats) = self.run(pyr, &params, Some(aug), budget);
+        let found: Vec<Location> = solved.iter().map(|s| s.cand.location()).collect();
+        let best = solved
+            .into_iter()
+            .min_by(|a, b| a.energy.total_cmp(&b.energy))
+            .map(|s| Augmented {
+                location: s.cand.location(),
+                value: -s.energy,
+                cells: s.cells,
+            });
+        Ok((best, found, stats))
+    }
+
+    /// Loss-augmented inference restricted to the given locations.
+    pub fn most_violated_among(
+        &self,
+        pyr: &FeaturePyramid,
+        locations: &[Location],
+        aug: &dyn LossAugment,
+        floor: f64,
+    ) -> Option<Augmented> {
+        let mut s = Scratch::default();
+        let mut best: Option<Augmented> = None;
+        let mut cut = -floor;
+        for loc in locations {
+            let cand = Candidate {
+                view: loc.view,
+                level: loc.level,
+                x: loc.x,
+                y: loc.y,
+                bound: f64::NEG_INFINITY,
+            };
+            if let Some(r) = self.solve(pyr, &cand, cut, true, Some(aug), &mut s) {
+                if r.energy < cut {
+                    cut = r.energy;
+                    best = Some(Augmented {
+                        location: *loc,
+                        value: -r.energy,
+                        cells: r.cells,
+                    });
+                }
+            }
+        }
+        best
+    }
+
+    /// Both stages and the min-cuts; the solved locations with energy at
+    /// most `-threshold` (for a single best detection, only those that were
+    /// the best when found).
+    fn run(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        aug: Option<&dyn LossAugment>,
+        budget: Option<usize>,
+    ) -> (Vec<Solved>, DetectStats) {
+        let mut stats = DetectStats::default();
+        let max_loss = aug.map_or(0.0, |a| a.max_loss());
         let cut = -params.threshold;
         let t = Instant::now();
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
@@ -498,7 +722,7 @@ impl<'a> Detector<'a> {
             .par_iter()
             .map(|&(l, v)| {
                 let map = maps.get(l).unwrap_or(&empty);
-                self.scan_level(l, &pyr.levels[l], map, v, params, cut)
+                self.scan_level(l, &pyr.levels[l], map, v, params, cut, max_loss)
             })
             .collect();
         let mut cands: Vec<Candidate> = Vec::new();
@@ -524,6 +748,9 @@ impl<'a> Detector<'a> {
             if single && block[0].bound - margin(block[0].bound) > best {
                 break;
             }
+            if budget.is_some_and(|b| stats.min_cuts >= b) {
+                break;
+            }
             let cutoff = best;
             let out: Vec<Option<Solved>> = block
                 .par_iter()
@@ -531,7 +758,7 @@ impl<'a> Detector<'a> {
                     if single && c.bound - margin(c.bound) > cutoff {
                         return None;
                     }
-                    self.solve(pyr, c, cutoff, params.prune, s)
+                    self.solve(pyr, c, cutoff, params.prune, aug, s)
                 })
                 .collect();
             for r in out.into_iter().flatten() {
@@ -546,10 +773,7 @@ impl<'a> Detector<'a> {
         }
         stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
         stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
-        let t = Instant::now();
-        let dets = self.suppress(pyr, solved, params);
-        stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
-        Ok((dets, stats))
+        (solved, stats)
     }
 
     /// Sorts by score (ties in a fixed order), converts to image boxes and
@@ -577,15 +801,7 @@ impl<'a> Detector<'a> {
             }
             let view = &self.views[s.cand.view];
             let level = &pyr.levels[s.cand.level];
-            let grid = CellGrid {
-                cell_x: s.cand.x,
-                cell_y: s.cand.y,
-                rows: view.w.rows,
-                cols: view.w.cols,
-                scale_x: level.scale_x,
-                scale_y: level.scale_y,
-                cell_size: CELL_SIZE,
-            };
+            let grid = self.grid(pyr, &s.cand.location());
             let bbox = grid.pixel_box();
             if out.iter().any(|d| box_iou(d.bbox, bbox) > params.nms_iou) {
                 continue;

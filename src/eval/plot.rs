@@ -1,0 +1,175 @@
+//! Recall-FPPI plot: one panel per object with our curves (per-object and
+//! cross-object protocols) beside the published Hsiao & Hebert curves.
+
+use std::path::Path;
+use std::sync::OnceLock;
+
+use plotters::prelude::*;
+
+use super::{ObjectScore, GRID};
+
+/// Errors of plotting.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    #[error("plot: {0}")]
+    Draw(String),
+    #[error("{0}: {1}")]
+    Io(String, String),
+}
+
+fn draw_err(e: impl std::fmt::Display) -> PlotError {
+    PlotError::Draw(e.to_string())
+}
+
+/// Registers a TrueType font for labels (`SDHOP_FONT`, else DejaVu Sans or
+/// Liberation Sans where the system has them). Without one the plot is drawn
+/// without text.
+fn font_available() -> bool {
+    static FONT: OnceLock<bool> = OnceLock::new();
+    *FONT.get_or_init(|| {
+        let candidates = [
+            std::env::var("SDHOP_FONT").unwrap_or_default(),
+            "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf".into(),
+            "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf".into(),
+        ];
+        for c in candidates.iter().filter(|c| !c.is_empty()) {
+            if let Ok(bytes) = std::fs::read(c) {
+                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+                if plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok() {
+                    return true;
+                }
+            }
+        }
+        false
+    })
+}
+
+/// Reads a published curve file: rows `fppi r1 r2 r3 r4`.
+fn read_published(path: &Path) -> Vec<Vec<(f64, f64)>> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Vec::new();
+    };
+    let rows: Vec<Vec<f64>> = text
+        .lines()
+        .map(|l| {
+            l.split_whitespace()
+                .filter_map(|v| v.parse().ok())
+                .collect()
+        })
+        .filter(|r: &Vec<f64>| r.len() >= 2)
+        .collect();
+    let cols = rows.iter().map(|r| r.len()).min().unwrap_or(0);
+    (1..cols)
+        .map(|c| rows.iter().map(|r| (r[0], r[c])).collect())
+        .collect()
+}
+
+const PUBLISHED: [&str; 4] = ["LINE2D", "rLINE2D", "rLINE2D+OPP", "rLINE2D+OCLP"];
+
+/// Draws the panels into a PNG at `out`. `published_dir` holds
+/// `<object>.txt` curves (missing files are left out).
+pub fn recall_fppi_png(
+    scores: &[ObjectScore],
+    published_dir: &Path,
+    out: &Path,
+) -> Result<(), PlotError> {
+    let text = font_available();
+    let cols = 4usize;
+    let rows = scores.len().div_ceil(cols).max(1);
+    let (pw, ph) = (360u32, 300u32);
+    let (w, h) = (pw * cols as u32, ph * rows as u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(draw_err)?;
+        let panels = root.split_evenly((rows, cols));
+        let grey = [
+            RGBColor(190, 190, 190),
+            RGBColor(160, 160, 160),
+            RGBColor(120, 120, 120),
+            RGBColor(230, 140, 40),
+        ];
+        for (panel, s) in panels.iter().zip(scores) {
+            let mut builder = ChartBuilder::on(panel);
+            builder.margin(8);
+            if text {
+                builder
+                    .caption(
+                        format!("{} AUC {:.3} / cross {:.3}", s.object, s.auc, s.auc_cross),
+                        ("sans-serif", 15),
+                    )
+                    .x_label_area_size(28)
+                    .y_label_area_size(34);
+            }
+            let mut chart = builder
+                .build_cartesian_2d(0.0..1.0f64, 0.0..1.0f64)
+                .map_err(draw_err)?;
+            if text {
+                chart
+                    .configure_mesh()
+                    .x_desc("FPPI")
+                    .y_desc("recall")
+                    .label_style(("sans-serif", 11))
+                    .draw()
+                    .map_err(draw_err)?;
+            } else {
+                chart
+                    .configure_mesh()
+                    .disable_x_mesh()
+                    .disable_y_mesh()
+                    .draw()
+                    .map_err(draw_err)?;
+            }
+            let published = read_published(&published_dir.join(format!("{}.txt", s.object)));
+            for (i, curve) in published.iter().enumerate() {
+                let color = grey[i.min(3)];
+                let series = chart
+                    .draw_series(LineSeries::new(
+                        curve.iter().copied(),
+                        color.stroke_width(2),
+                    ))
+                    .map_err(draw_err)?;
+                if text {
+                    series
+                        .label(PUBLISHED.get(i).copied().unwrap_or("published"))
+                        .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], color));
+                }
+            }
+            let ours = |c: &[f64]| -> Vec<(f64, f64)> {
+                c.iter()
+                    .enumerate()
+                    .map(|(g, &r)| (g as f64 / (GRID - 1) as f64, r))
+                    .collect()
+            };
+            let blue = RGBColor(20, 70, 200);
+            let red = RGBColor(200, 30, 30);
+            let a = chart
+                .draw_series(LineSeries::new(ours(&s.curve), blue.stroke_width(3)))
+                .map_err(draw_err)?;
+            if text {
+                a.label("SD-HOP")
+                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], blue));
+            }
+            let b = chart
+                .draw_series(LineSeries::new(ours(&s.curve_cross), red.stroke_width(2)))
+                .map_err(draw_err)?;
+            if text {
+                b.label("SD-HOP cross-object")
+                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], red));
+                chart
+                    .configure_series_labels()
+                    .position(SeriesLabelPosition::LowerRight)
+                    .label_font(("sans-serif", 10))
+                    .background_style(WHITE.mix(0.8))
+                    .border_style(BLACK)
+                    .draw()
+                    .map_err(draw_err)?;
+            }
+        }
+        root.present().map_err(draw_err)?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| PlotError::Draw("buffer size".into()))?;
+    img.save(out)
+        .map_err(|e| PlotError::Io(out.display().to_string(), e.to_string()))
+}

@@ -1,0 +1,239 @@
+//! Training and cross-validation on the CMU_KO8 layout.
+//!
+//! Each object's model trains on its own annotated images, the negative
+//! kitchen scenes, and a subset of the other objects' images as further
+//! negatives (the cross-object protocol counts detections there as false
+//! positives). Cross-validation splits every object's images into folds by
+//! their sorted order; the models of fold `f` never see any fold-`f` image,
+//! of any object, and are scored on all of them together.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::{progress_bar, train_model, PyramidCache, TrainError, TrainParams, TrainReport};
+use crate::dataset::{Ko8, Sample};
+use crate::eval::{mean_score, score_object, Evaluated, MeanScore, ObjectScore};
+use crate::model::Model;
+use crate::pipeline::{detect_pyramid, DetectOptions, DetectResponse, MaskMode};
+
+/// Which images train each object's model besides its own.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct NegativeSet {
+    /// Negative scenes used (the first ones in sorted order; all by default).
+    pub scenes: usize,
+    /// Images of each other object used as negatives (evenly spaced).
+    pub per_other_object: usize,
+}
+
+impl Default for NegativeSet {
+    fn default() -> Self {
+        Self {
+            scenes: 100,
+            per_other_object: 10,
+        }
+    }
+}
+
+/// The dataset read once: every object's annotated images and the negatives.
+pub struct Ko8Data {
+    pub objects: Vec<String>,
+    /// Annotated images per object, sorted by id.
+    pub images: Vec<Vec<Sample>>,
+    pub negatives: Vec<Sample>,
+    pub skipped: Vec<String>,
+}
+
+impl Ko8Data {
+    pub fn load(root: &Path, objects: &[String]) -> Result<Self, TrainError> {
+        let ko8 = Ko8::open(root)?;
+        let objects = if objects.is_empty() {
+            ko8.objects()
+        } else {
+            objects.to_vec()
+        };
+        let mut images = Vec::new();
+        let mut skipped = Vec::new();
+        for o in &objects {
+            let l = ko8.test_samples(o)?;
+            skipped.extend(l.skipped);
+            images.push(l.samples);
+        }
+        Ok(Self {
+            objects,
+            images,
+            negatives: ko8.negatives()?,
+            skipped,
+        })
+    }
+
+    /// Training images of object `oi`, leaving out fold `fold` of `folds`
+    /// (`None`: all images).
+    pub fn training_set(
+        &self,
+        oi: usize,
+        fold: Option<(usize, usize)>,
+        neg: &NegativeSet,
+    ) -> Vec<&Sample> {
+        let keep = |i: usize| fold.is_none_or(|(f, k)| i % k != f);
+        let mut out: Vec<&Sample> = self.images[oi]
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| keep(*i))
+            .map(|(_, s)| s)
+            .collect();
+        out.extend(self.negatives.iter().take(neg.scenes));
+        for (oj, imgs) in self.images.iter().enumerate() {
+            if oj == oi || neg.per_other_object == 0 {
+                continue;
+            }
+            let pool: Vec<&Sample> = imgs
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| keep(*i))
+                .map(|(_, s)| s)
+                .collect();
+            let step = (pool.len() as f64 / neg.per_other_object as f64).max(1.0);
+            let mut t = 0.0;
+            while (t as usize) < pool.len() {
+                out.push(pool[t as usize]);
+                t += step;
+            }
+        }
+        out
+    }
+
+    /// The held-out images of fold `f` (all objects).
+    pub fn fold_images(&self, fold: Option<(usize, usize)>) -> Vec<&Sample> {
+        self.images
+            .iter()
+            .flat_map(|imgs| {
+                imgs.iter()
+                    .enumerate()
+                    .filter(move |(i, _)| fold.is_none_or(|(f, k)| i % k == f))
+                    .map(|(_, s)| s)
+            })
+            .collect()
+    }
+}
+
+/// Trains one model per object; `fold` leaves a fold out.
+pub fn train_objects(
+    data: &Ko8Data,
+    fold: Option<(usize, usize)>,
+    params: &TrainParams,
+    neg: &NegativeSet,
+    cache: &PyramidCache,
+) -> Result<Vec<(Model, TrainReport)>, TrainError> {
+    let mut out = Vec::new();
+    for (oi, o) in data.objects.iter().enumerate() {
+        let set = data.training_set(oi, fold, neg);
+        let pb = progress_bar(0, o);
+        let r = train_model(o, &set, cache, params, &pb)?;
+        pb.finish_and_clear();
+        out.push(r);
+    }
+    Ok(out)
+}
+
+/// Detections of `models` on `images`, in the response shape of `/detect`
+/// (both masks, at most `max_detections` in all).
+pub fn detect_all(
+    images: &[&Sample],
+    models: &[&Model],
+    cache: &PyramidCache,
+    max_detections: usize,
+) -> Result<Vec<DetectResponse>, TrainError> {
+    use rayon::prelude::*;
+    let opts = DetectOptions {
+        max_detections: Some(max_detections),
+        masks: MaskMode::Both,
+        ..DetectOptions::default()
+    };
+    let pb = progress_bar(images.len() as u64, "detect");
+    let out = images
+        .par_iter()
+        .map(|s| {
+            let pyr = cache
+                .get(&s.image)
+                .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", s.image.display())))?;
+            let r = detect_pyramid(&pyr, models, &opts)?;
+            pb.inc(1);
+            Ok(r)
+        })
+        .collect::<Result<Vec<_>, TrainError>>();
+    pb.finish_and_clear();
+    out
+}
+
+/// Figures of an evaluation.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct Evaluation {
+    pub objects: Vec<ObjectScore>,
+    pub mean: MeanScore,
+}
+
+/// Scores responses against the images' truth.
+pub fn score(data: &Ko8Data, images: &[&Sample], responses: &[DetectResponse]) -> Evaluation {
+    let evaluated: Vec<Evaluated> = images
+        .iter()
+        .zip(responses)
+        .map(|(s, r)| Evaluated {
+            id: &s.id,
+            truth: s.annotation.as_ref(),
+            detections: &r.detections,
+        })
+        .collect();
+    let objects: Vec<ObjectScore> = data
+        .objects
+        .iter()
+        .map(|o| score_object(o, &evaluated))
+        .collect();
+    Evaluation {
+        mean: mean_score(&objects),
+        objects,
+    }
+}
+
+/// Result of a cross-validation.
+pub struct CrossValidation {
+    pub evaluation: Evaluation,
+    /// Every annotated image with the response of its fold's models.
+    pub images: Vec<Sample>,
+    pub responses: Vec<DetectResponse>,
+    pub reports: Vec<Vec<TrainReport>>,
+}
+
+/// `folds`-fold cross-validation of every object's model.
+pub fn cross_validate(
+    data: &Ko8Data,
+    folds: usize,
+    params: &TrainParams,
+    neg: &NegativeSet,
+    cache: &PyramidCache,
+    max_detections: usize,
+) -> Result<CrossValidation, TrainError> {
+    let mut images: Vec<Sample> = Vec::new();
+    let mut responses = Vec::new();
+    let mut reports = Vec::new();
+    for f in 0..folds {
+        let trained = train_objects(data, Some((f, folds)), params, neg, cache)?;
+        let models: Vec<&Model> = trained.iter().map(|(m, _)| m).collect();
+        let held = data.fold_images(Some((f, folds)));
+        let pb = progress_bar(0, "pyramids");
+        cache.fill(&held, &params.pyramid, &params.segmentation, &pb)?;
+        pb.finish_and_clear();
+        responses.extend(detect_all(&held, &models, cache, max_detections)?);
+        images.extend(held.into_iter().cloned());
+        reports.push(trained.into_iter().map(|(_, r)| r).collect());
+    }
+    let refs: Vec<&Sample> = images.iter().collect();
+    let evaluation = score(data, &refs, &responses);
+    Ok(CrossValidation {
+        evaluation,
+        images,
+        responses,
+        reports,
+    })
+}

@@ -1,0 +1,308 @@
+//! The loss of eq. (3) and its decomposition for loss-augmented inference.
+//!
+//! `Delta(y, y_hat) = (1 - IoU) + IoU * H(v, v_hat)`, where `H` is the mean
+//! Hamming distance of the visibility labels. Labels of boxes at different
+//! scales are compared at the finest level (pixels): the truth label of a
+//! cell of `y_hat` is the majority of the ground-truth visible pixels in the
+//! cell's footprint. The first term goes into the constant of the energy, the
+//! second into the unaries of the cells (`IoU / n` per disagreeing cell).
+
+use crate::vision::detect::{box_iou, LossAugment};
+use crate::vision::energy::BoxProblem;
+use crate::vision::mask::{CellGrid, Mask};
+
+/// Which loss to train with.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum LossKind {
+    /// Eq. (3): `(1 - IoU) + IoU * H`.
+    SdHop,
+    /// The loss of Gao et al. 2011 as the ablation uses it: 1 when the boxes
+    /// overlap by less than IoU 0.5, otherwise the mean Hamming distance.
+    Gao,
+}
+
+/// Summed-area table of a mask, for pixel counts over rectangles.
+#[derive(Clone, Debug)]
+pub struct IntegralMask {
+    width: usize,
+    height: usize,
+    sums: Vec<u32>,
+}
+
+impl IntegralMask {
+    pub fn new(m: &Mask) -> Self {
+        let (w, h) = (m.width, m.height);
+        let mut sums = vec![0u32; (w + 1) * (h + 1)];
+        for y in 0..h {
+            let mut row = 0u32;
+            for x in 0..w {
+                row += u32::from(m.data[y * w + x] != 0);
+                sums[(y + 1) * (w + 1) + x + 1] = sums[y * (w + 1) + x + 1] + row;
+            }
+        }
+        Self {
+            width: w,
+            height: h,
+            sums,
+        }
+    }
+
+    /// True pixels in `[x0, x1) x [y0, y1)`, clipped to the mask.
+    pub fn count(&self, x0: i64, y0: i64, x1: i64, y1: i64) -> u32 {
+        let cx = |v: i64| v.clamp(0, self.width as i64) as usize;
+        let cy = |v: i64| v.clamp(0, self.height as i64) as usize;
+        let (x0, x1, y0, y1) = (cx(x0), cx(x1), cy(y0), cy(y1));
+        if x1 <= x0 || y1 <= y0 {
+            return 0;
+        }
+        let w = self.width + 1;
+        self.sums[y1 * w + x1] + self.sums[y0 * w + x0]
+            - self.sums[y0 * w + x1]
+            - self.sums[y1 * w + x0]
+    }
+}
+
+/// The pixel footprint `[x0, x1) x [y0, y1)` of cell `i` of a box (the
+/// pixels whose centres map into the cell, as [`CellGrid::cell_of`] draws).
+fn cell_footprint(grid: &CellGrid, i: usize) -> (i64, i64, i64, i64) {
+    let cs = grid.cell_size as f64;
+    let (tx, ty) = ((i % grid.cols) as f64, (i / grid.cols) as f64);
+    let edge = |c: f64, s: f64| ((c * cs / s) - 0.5).ceil() as i64;
+    let (gx, gy) = (grid.cell_x as f64 + tx, grid.cell_y as f64 + ty);
+    (
+        edge(gx, grid.scale_x),
+        edge(gy, grid.scale_y),
+        edge(gx + 1.0, grid.scale_x),
+        edge(gy + 1.0, grid.scale_y),
+    )
+}
+
+/// The ground-truth visibility of the cells of a box: a cell is visible when
+/// more than half of its footprint is visible object (pixels outside the
+/// image count as not visible).
+pub fn cell_truth(grid: &CellGrid, visible: &IntegralMask, out: &mut Vec<bool>) {
+    out.clear();
+    for i in 0..grid.rows * grid.cols {
+        let (x0, y0, x1, y1) = cell_footprint(grid, i);
+        let area = ((x1 - x0).max(0) * (y1 - y0).max(0)) as u64;
+        let on = u64::from(visible.count(x0, y0, x1, y1));
+        out.push(area > 0 && 2 * on > area);
+    }
+}
+
+/// The ground truth a loss is measured against: the box of the ground-truth
+/// output and the visible pixels; `None` for an image without the object.
+pub struct Truth<'a> {
+    pub bbox: (f64, f64, f64, f64),
+    pub visible: &'a IntegralMask,
+}
+
+/// The loss against one ground truth, decomposed for the min-cut.
+pub struct TruthLoss<'a> {
+    pub truth: Option<Truth<'a>>,
+    pub kind: LossKind,
+}
+
+impl TruthLoss<'_> {
+    /// The box part of the loss at a box and the weight of each disagreeing
+    /// cell: `Delta = constant + weight * #disagreements`.
+    fn terms(&self, grid: &CellGrid) -> (f64, f64) {
+        let Some(t) = &self.truth else {
+            return (1.0, 0.0);
+        };
+        let n = (grid.rows * grid.cols) as f64;
+        let iou = box_iou(t.bbox, grid.pixel_box());
+        match self.kind {
+            LossKind::SdHop => (1.0 - iou, iou / n),
+            LossKind::Gao => {
+                if iou < 0.5 {
+                    (1.0, 0.0)
+                } else {
+                    (0.0, 1.0 / n)
+                }
+            }
+        }
+    }
+
+    /// The loss of labelling `v` of the box at `grid`, computed directly.
+    pub fn loss(&self, grid: &CellGrid, v: &[bool]) -> f64 {
+        let (c, w) = self.terms(grid);
+        let Some(t) = &self.truth else {
+            return c;
+        };
+        let mut truth = Vec::new();
+        cell_truth(grid, t.visible, &mut truth);
+        let wrong = truth.iter().zip(v).filter(|(a, b)| a != b).count();
+        c + w * wrong as f64
+    }
+}
+
+impl LossAugment for TruthLoss<'_> {
+    fn max_loss(&self) -> f64 {
+        1.0
+    }
+
+    fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem) {
+        let (c, w) = self.terms(grid);
+        problem.constant -= c;
+        if w > 0.0 {
+            if let Some(t) = &self.truth {
+                let mut truth = Vec::with_capacity(problem.len());
+                cell_truth(grid, t.visible, &mut truth);
+                problem.add_hamming_loss(&truth, w);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::rng::SplitMix64;
+
+    fn grid(x: isize, y: isize, rows: usize, cols: usize, scale: f64) -> CellGrid {
+        CellGrid {
+            cell_x: x,
+            cell_y: y,
+            rows,
+            cols,
+            scale_x: scale,
+            scale_y: scale,
+            cell_size: 8,
+        }
+    }
+
+    fn random_mask(rng: &mut SplitMix64, w: usize, h: usize) -> Mask {
+        let mut m = Mask::new(w, h);
+        let (x0, y0) = (rng.range_usize(0, w / 2), rng.range_usize(0, h / 2));
+        let (x1, y1) = (rng.range_usize(x0 + 1, w), rng.range_usize(y0 + 1, h));
+        for y in y0..y1 {
+            for x in x0..x1 {
+                m.set(x, y, rng.next_f64() < 0.8);
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn integral_counts_match_direct_counts() {
+        let mut rng = SplitMix64::new(3);
+        let m = random_mask(&mut rng, 23, 17);
+        let im = IntegralMask::new(&m);
+        for _ in 0..200 {
+            let (x0, y0) = (
+                rng.range_usize(0, 30) as i64 - 4,
+                rng.range_usize(0, 25) as i64 - 4,
+            );
+            let (x1, y1) = (
+                x0 + rng.range_usize(0, 20) as i64,
+                y0 + rng.range_usize(0, 20) as i64,
+            );
+            let mut direct = 0;
+            for y in y0.max(0)..y1.min(17) {
+                for x in x0.max(0)..x1.min(23) {
+                    direct += u32::from(m.get(x as usize, y as usize));
+                }
+            }
+            assert_eq!(im.count(x0, y0, x1, y1), direct);
+        }
+    }
+
+    /// Zero for the ground truth itself, 1 for disjoint boxes, symmetric for
+    /// boxes on the same cell grid, and in [0, 1].
+    #[test]
+    fn properties_of_eq_3() {
+        let mut rng = SplitMix64::new(11);
+        for _ in 0..50 {
+            let m = random_mask(&mut rng, 96, 80);
+            let im = IntegralMask::new(&m);
+            let g = grid(
+                rng.range_usize(0, 4) as isize,
+                rng.range_usize(0, 4) as isize,
+                4,
+                5,
+                1.0,
+            );
+            let mut tv = Vec::new();
+            cell_truth(&g, &im, &mut tv);
+            let at = |b: &CellGrid| TruthLoss {
+                truth: Some(Truth {
+                    bbox: b.pixel_box(),
+                    visible: &im,
+                }),
+                kind: LossKind::SdHop,
+            };
+            assert_eq!(at(&g).loss(&g, &tv), 0.0);
+            let far = grid(g.cell_x + 6, g.cell_y, 4, 5, 1.0);
+            let v: Vec<bool> = (0..20).map(|_| rng.next_f64() < 0.5).collect();
+            assert_eq!(at(&g).loss(&far, &v), 1.0);
+            // Same grid, shifted: symmetric when both sides use their own
+            // truth labels as the labelling.
+            let other = grid(g.cell_x + 1, g.cell_y, 4, 5, 1.0);
+            let mut ov = Vec::new();
+            cell_truth(&other, &im, &mut ov);
+            let d1 = at(&g).loss(&other, &ov);
+            let d2 = at(&other).loss(&g, &tv);
+            assert!((d1 - d2).abs() < 1e-12, "{d1} vs {d2}");
+            let d = at(&g).loss(&other, &v);
+            assert!((0.0..=1.0).contains(&d));
+        }
+    }
+
+    /// `E(v) - Delta(v)` equals the augmented problem's energy for every
+    /// labelling of small boxes at several scales, for both losses.
+    #[test]
+    fn decomposition_equals_the_direct_loss_for_every_labelling() {
+        let mut rng = SplitMix64::new(5);
+        for case in 0..40 {
+            let m = random_mask(&mut rng, 64, 48);
+            let im = IntegralMask::new(&m);
+            let (rows, cols) = (rng.range_usize(1, 4), rng.range_usize(1, 4));
+            let scale = [1.0, 0.8, 0.6][case % 3];
+            let g = grid(
+                rng.range_usize(0, 5) as isize - 1,
+                rng.range_usize(0, 5) as isize - 1,
+                rows,
+                cols,
+                scale,
+            );
+            let truth_box = (
+                rng.range_f64(0.0, 30.0),
+                rng.range_f64(0.0, 20.0),
+                rng.range_f64(8.0, 40.0),
+                rng.range_f64(8.0, 30.0),
+            );
+            let kind = if case % 2 == 0 {
+                LossKind::SdHop
+            } else {
+                LossKind::Gao
+            };
+            let loss = TruthLoss {
+                truth: Some(Truth {
+                    bbox: truth_box,
+                    visible: &im,
+                }),
+                kind,
+            };
+            let n = rows * cols;
+            let mut p = BoxProblem::new(rows, cols, vec![0.0, 0.5, 0.7, 0.5, 0.0]);
+            for i in 0..n {
+                p.u1[i] = rng.range_f64(-1.0, 1.0);
+                p.u0[i] = rng.range_f64(-1.0, 1.0);
+                p.clique_of[i] = 0;
+            }
+            p.n_cliques = 1;
+            p.pairwise = 0.2;
+            let mut aug = p.clone();
+            loss.augment(&g, &mut aug);
+            for bits in 0..1u32 << n {
+                let v: Vec<bool> = (0..n).map(|i| bits >> i & 1 == 1).collect();
+                let direct = p.energy(&v) - loss.loss(&g, &v);
+                assert!((aug.energy(&v) - direct).abs() < 1e-12);
+            }
+        }
+    }
+}

@@ -1,0 +1,927 @@
+//! Structured SVM training of SD-HOP models (paper section 2.3): the 1-slack
+//! cutting-plane algorithm (Joachims, Finley and Yu 2009) with the loss of
+//! eq. (3), loss-augmented inference by the detector's own exact min-cut
+//! search over every location, level and viewpoint, and the dual QP solved by
+//! clarabel with `W >= 0` and `D^2 w_HOP >= 0`.
+//!
+//! The HOP weights are trained in a parametrisation where the curvature
+//! constraint is a sign constraint: `w_k = a + b k - sum_{j<k} (k - j) c_j`
+//! with `c_j = (D^2 w)_j >= 0`, so the saved weights satisfy it exactly.
+//!
+//! Work per image is cached: pyramids and segmentations are computed once,
+//! and the locations found by full searches are kept per image, so that
+//! inner iterations search only those (exact over the cache) and a full
+//! search over everything runs only to find new constraints or to prove
+//! convergence.
+
+pub mod ko8;
+pub mod loss;
+pub mod qp;
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::dataset::{load_image, DatasetError, Sample};
+use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
+use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
+use crate::vision::energy::{joint_feature, joint_feature_len, ViewWeights};
+use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
+use crate::vision::rng::SplitMix64;
+use crate::vision::segment::SegmentParams;
+use crate::vision::VisionError;
+
+use loss::{cell_truth, IntegralMask, LossKind, Truth, TruthLoss};
+use qp::{Plane, WorkingSet};
+
+/// Errors of training.
+#[derive(Debug, Error)]
+pub enum TrainError {
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    #[error(transparent)]
+    Vision(#[from] VisionError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error("QP solver: {0}")]
+    Qp(String),
+    #[error("no usable training data: {0}")]
+    NoData(String),
+}
+
+/// Every setting of training; saved in the model's provenance.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrainParams {
+    /// Regularisation constant `C` of the 1-slack QP.
+    pub c: f64,
+    /// Standard clique size `K` of the higher-order potentials.
+    pub k: usize,
+    /// Template size: the median training box times this, in cells of 8 px
+    /// (so the median object is found on the pyramid level of this scale).
+    pub template_scale: f64,
+    /// Template size in cells `[rows, cols]`, overriding `template_scale`.
+    pub template: Option<[usize; 2]>,
+    pub pyramid: PyramidParams,
+    pub segmentation: SegmentParams,
+    /// Largest fraction of a box's cells outside the image.
+    pub max_truncation: f64,
+    /// Stop when a full search finds no constraint violated by more than
+    /// this beyond the working set's slack.
+    pub epsilon: f64,
+    /// Full searches over every location of every image, at most.
+    pub max_passes: usize,
+    /// Cutting-plane iterations over the cached locations per full search.
+    pub max_inner: usize,
+    /// Random locations per image that seed the cache (initialisation).
+    pub init_locations: usize,
+    /// Min-cuts per image of the hard-example mining passes (in order of
+    /// the exact bound); the last `exact_passes` passes have no budget.
+    pub mining_budget: usize,
+    pub exact_passes: usize,
+    /// Most locations kept in an image's cache (the oldest leave first).
+    pub cache_size: usize,
+    /// Share of the objective carried by the positive images (the negatives
+    /// carry the rest).
+    pub positive_share: f64,
+    pub loss: LossKind,
+    /// Train the higher-order potentials (false: the no-HOP ablation).
+    pub hop: bool,
+    /// Train the pairwise term (false: no pairwise ablation).
+    pub pairwise: bool,
+    pub seed: u64,
+    /// Detection threshold saved in the model (score units; the SVM margin
+    /// puts positives at >= 1 and negatives at <= -1).
+    pub threshold: f64,
+}
+
+impl Default for TrainParams {
+    fn default() -> Self {
+        Self {
+            c: 10.0,
+            k: 4,
+            template_scale: 0.8,
+            template: None,
+            pyramid: PyramidParams::default(),
+            segmentation: SegmentParams::default(),
+            max_truncation: 0.5,
+            epsilon: 0.01,
+            max_passes: 5,
+            max_inner: 8,
+            init_locations: 30,
+            mining_budget: 300,
+            exact_passes: 0,
+            cache_size: 40,
+            positive_share: 0.5,
+            loss: LossKind::SdHop,
+            hop: true,
+            pairwise: true,
+            seed: 1,
+            threshold: 0.5,
+        }
+    }
+}
+
+impl TrainParams {
+    /// Checks the settings before any work.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let bad = |m: String| Err(TrainError::NoData(format!("invalid setting: {m}")));
+        if !self.c.is_finite() || self.c <= 0.0 {
+            return bad(format!("C must be > 0, got {}", self.c));
+        }
+        if self.k < 1 {
+            return bad("K must be >= 1".into());
+        }
+        if self.template_scale.is_nan() || self.template_scale <= 0.0 || self.template_scale > 4.0 {
+            return bad(format!(
+                "template_scale must be in (0, 4], got {}",
+                self.template_scale
+            ));
+        }
+        if self.epsilon.is_nan() || self.epsilon <= 0.0 {
+            return bad("epsilon must be > 0".into());
+        }
+        if !(0.0..=1.0).contains(&self.positive_share) {
+            return bad("positive_share must be in [0, 1]".into());
+        }
+        if !(0.0..1.0).contains(&self.max_truncation) || !self.threshold.is_finite() {
+            return bad("max_truncation must be in [0, 1) and the threshold finite".into());
+        }
+        self.pyramid.validate()?;
+        self.segmentation.validate()?;
+        Ok(())
+    }
+}
+
+/// A pyramid per image path, computed once and shared by every model.
+#[derive(Default)]
+pub struct PyramidCache {
+    map: std::sync::Mutex<HashMap<PathBuf, Arc<FeaturePyramid>>>,
+}
+
+impl PyramidCache {
+    /// Computes the missing pyramids in parallel.
+    pub fn fill(
+        &self,
+        samples: &[&Sample],
+        pyramid: &PyramidParams,
+        seg: &SegmentParams,
+        progress: &ProgressBar,
+    ) -> Result<(), TrainError> {
+        let missing: Vec<&PathBuf> = {
+            let map = self
+                .map
+                .lock()
+                .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
+            let mut seen = std::collections::HashSet::new();
+            samples
+                .iter()
+                .map(|s| &s.image)
+                .filter(|p| !map.contains_key(*p) && seen.insert(*p))
+                .collect()
+        };
+        progress.set_length(missing.len() as u64);
+        let built: Vec<(PathBuf, Arc<FeaturePyramid>)> = missing
+            .par_iter()
+            .map(|p| {
+                let img = load_image(p)?;
+                let pyr = FeaturePyramid::build(&img, pyramid, seg)?;
+                progress.inc(1);
+                Ok(((*p).clone(), Arc::new(pyr)))
+            })
+            .collect::<Result<_, TrainError>>()?;
+        let mut map = self
+            .map
+            .lock()
+            .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
+        map.extend(built);
+        Ok(())
+    }
+
+    /// Adds a pyramid built elsewhere (e.g. of a generated image).
+    pub fn insert(&self, path: PathBuf, pyr: FeaturePyramid) {
+        if let Ok(mut map) = self.map.lock() {
+            map.insert(path, Arc::new(pyr));
+        }
+    }
+
+    pub fn get(&self, path: &PathBuf) -> Option<Arc<FeaturePyramid>> {
+        self.map.lock().ok()?.get(path).cloned()
+    }
+}
+
+/// Positions of the blocks of one model's training vector.
+#[derive(Clone, Debug)]
+pub struct Layout {
+    /// `(rows, cols)` per viewpoint.
+    pub shapes: Vec<(usize, usize)>,
+    pub k: usize,
+    offsets: Vec<usize>,
+    pub len: usize,
+}
+
+impl Layout {
+    pub fn new(shapes: Vec<(usize, usize)>, k: usize) -> Self {
+        let mut offsets = Vec::new();
+        let mut len = 0;
+        for &(r, c) in &shapes {
+            offsets.push(len);
+            len += joint_feature_len(r * c, k);
+        }
+        Self {
+            shapes,
+            k,
+            offsets,
+            len,
+        }
+    }
+
+    fn n(&self, view: usize) -> usize {
+        self.shapes[view].0 * self.shapes[view].1
+    }
+
+    /// Index of `W` of a viewpoint.
+    fn pair_index(&self, view: usize) -> usize {
+        let n = self.n(view);
+        self.offsets[view] + 2 * n * HOG_DIM + n + 1
+    }
+
+    /// Index of the first HOP parameter `a`; then `b`, then `c_1..c_{K-1}`.
+    fn hop_index(&self, view: usize) -> usize {
+        self.pair_index(view) + 1
+    }
+
+    /// The coordinates constrained to be non-negative: `W` and the HOP
+    /// curvatures `c_j` of every viewpoint.
+    pub fn nonneg(&self) -> Vec<usize> {
+        let mut out = Vec::new();
+        for v in 0..self.shapes.len() {
+            out.push(self.pair_index(v));
+            out.extend((2..=self.k).map(|j| self.hop_index(v) + j));
+        }
+        out
+    }
+
+    /// Writes a viewpoint's joint feature (HOP block in the training
+    /// parametrisation) into `out` with weight `scale`.
+    fn add_psi(
+        &self,
+        view: usize,
+        psi: &[f64],
+        scale: f64,
+        out: &mut [f64],
+        hop: bool,
+        pair: bool,
+    ) {
+        let o = self.offsets[view];
+        let h = self.hop_index(view) - o;
+        let k = self.k;
+        for (j, &v) in psi[..h].iter().enumerate() {
+            if j == self.pair_index(view) - o && !pair {
+                continue;
+            }
+            out[o + j] += scale * v;
+        }
+        if hop {
+            let theta = &psi[h..h + k + 1];
+            let sum: f64 = theta.iter().sum();
+            let first: f64 = theta.iter().enumerate().map(|(i, t)| i as f64 * t).sum();
+            out[o + h] += scale * sum;
+            out[o + h + 1] += scale * first;
+            for j in 1..k {
+                let cj: f64 = (j + 1..=k).map(|kk| (kk - j) as f64 * theta[kk]).sum();
+                out[o + h + 1 + j] -= scale * cj;
+            }
+        }
+        out[o + h + k + 1] += scale * psi[h + k + 1];
+    }
+
+    /// The detector weights of a training vector. `W >= 0` and
+    /// `D^2 w_HOP >= 0` hold exactly in the `f32` values.
+    pub fn to_views(&self, w: &[f64]) -> Vec<ViewWeights> {
+        (0..self.shapes.len())
+            .map(|v| {
+                let (rows, cols) = self.shapes[v];
+                let n = rows * cols;
+                let o = self.offsets[v];
+                let mut vw = ViewWeights::zeros(rows, cols, self.k);
+                for i in 0..n {
+                    for d in 0..HOG_DIM {
+                        vw.w_vis[i * HOG_STRIDE + d] = w[o + i * HOG_DIM + d] as f32;
+                        vw.w_occ[i * HOG_STRIDE + d] = w[o + (n + i) * HOG_DIM + d] as f32;
+                    }
+                    vw.w_prior[i] = w[o + 2 * n * HOG_DIM + i] as f32;
+                }
+                vw.w_trunc = w[o + 2 * n * HOG_DIM + n] as f32;
+                vw.w_pair = w[self.pair_index(v)].max(0.0) as f32;
+                let h = self.hop_index(v);
+                vw.w_hop = exact_concave(w[h], w[h + 1], &w[h + 2..h + 1 + self.k]);
+                vw.bias = w[h + self.k + 1] as f32;
+                vw
+            })
+            .collect()
+    }
+}
+
+/// `w_k = a + b k - sum_{j<k} (k - j) c_j` for `k = 0..=K`, with `c_j`
+/// clamped at 0, as `f32` values whose curvature is exactly `c_j >= 0`:
+/// everything is rounded to a common power-of-two grid fine enough for
+/// 24-bit mantissas, then computed in integers.
+pub fn exact_concave(a: f64, b: f64, c: &[f64]) -> Vec<f32> {
+    let k = c.len() + 1;
+    let real: Vec<f64> = (0..=k)
+        .map(|kk| {
+            a + b * kk as f64
+                - (1..kk)
+                    .map(|j| (kk - j) as f64 * c[j - 1].max(0.0))
+                    .sum::<f64>()
+        })
+        .collect();
+    let big = real
+        .iter()
+        .chain([&a, &b])
+        .chain(c)
+        .fold(1e-30f64, |m, v| m.max(v.abs()));
+    // Every |value| / grid < 2^22 (headroom for the sums below 2^24).
+    let grid = 2f64.powi(big.log2().ceil() as i32 - 22);
+    let q = |v: f64| (v / grid).round() as i64;
+    let (qa, qb) = (q(a), q(b));
+    let qc: Vec<i64> = c.iter().map(|&v| q(v.max(0.0)).max(0)).collect();
+    (0..=k)
+        .map(|kk| {
+            let s = qa + qb * kk as i64 - (1..kk).map(|j| (kk - j) as i64 * qc[j - 1]).sum::<i64>();
+            (s as f64 * grid) as f32
+        })
+        .collect()
+}
+
+/// One training image prepared for a model.
+struct Example {
+    pyr: Arc<FeaturePyramid>,
+    /// Weight in the 1-slack average.
+    weight: f64,
+    truth: Option<GroundTruth>,
+    /// Locations found by earlier searches (and the seeds).
+    cache: Vec<Location>,
+}
+
+struct GroundTruth {
+    visible: IntegralMask,
+    location: Location,
+    bbox: (f64, f64, f64, f64),
+    cells: Vec<bool>,
+    /// The joint feature of the ground truth in training coordinates.
+    psi: Vec<f64>,
+}
+
+/// What one cutting-plane round found.
+struct Round {
+    plane: Plane,
+    /// Mean loss of the predictions (argmin of the energy) is not computed
+    /// here; this is the weighted mean loss of the most violated outputs.
+    loss: f64,
+    /// Min-cuts the round ran.
+    min_cuts: usize,
+}
+
+/// The most violated output of one example.
+struct Found {
+    /// Its weighted share of the plane: `w_i (Psi(y_hat) - Psi(y))`.
+    g: Vec<f64>,
+    /// Its weighted loss.
+    b: f64,
+    loss: f64,
+    location: Option<Location>,
+    min_cuts: usize,
+    /// Further hard locations met by the search.
+    extra: Vec<Location>,
+}
+
+/// Progress figures of one training run.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct TrainReport {
+    pub passes: usize,
+    pub iterations: usize,
+    pub planes: usize,
+    pub converged: bool,
+    /// Full searches that were exact (no min-cut budget).
+    pub exact_passes: usize,
+    /// Primal objective `1/2 |w|^2 + C xi` after each QP.
+    pub objective: Vec<f64>,
+    /// Slack of the most violated constraint of each full search.
+    pub full_violation: Vec<f64>,
+    /// Min-cuts run by each full search (all images).
+    pub full_min_cuts: Vec<usize>,
+    pub seconds: f64,
+    /// Time in full searches, cached searches and QP solves.
+    pub full_seconds: f64,
+    pub cached_seconds: f64,
+    pub qp_seconds: f64,
+    pub positives: usize,
+    pub negatives: usize,
+    pub skipped: Vec<String>,
+}
+
+/// Trains one model for `label` from positives (samples annotated with
+/// `label`) and negatives (samples without, or annotated otherwise).
+pub fn train_model(
+    label: &str,
+    samples: &[&Sample],
+    cache: &PyramidCache,
+    params: &TrainParams,
+    progress: &ProgressBar,
+) -> Result<(Model, TrainReport), TrainError> {
+    let start = Instant::now();
+    let mut report = TrainReport::default();
+    let positives: Vec<&Sample> = samples
+        .iter()
+        .copied()
+        .filter(|s| s.annotation.as_ref().is_some_and(|a| a.label == label))
+        .collect();
+    let negatives: Vec<&Sample> = samples
+        .iter()
+        .copied()
+        .filter(|s| s.annotation.as_ref().is_none_or(|a| a.label != label))
+        .collect();
+    if positives.is_empty() {
+        return Err(TrainError::NoData(format!("no positive image of {label}")));
+    }
+    let n_views = positives
+        .iter()
+        .filter_map(|s| s.annotation.as_ref().map(|a| a.viewpoint + 1))
+        .max()
+        .unwrap_or(1);
+    let shapes: Vec<(usize, usize)> = (0..n_views)
+        .map(|v| template_shape(&positives, v, params))
+        .collect::<Result<_, _>>()?;
+    let layout = Layout::new(shapes.clone(), params.k);
+    cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
+
+    // Ground truth of every positive: the location with the best box IoU.
+    let zero = layout.to_views(&vec![0.0; layout.len]);
+    let det0 = Detector::new(&zero)?;
+    let mut rng = SplitMix64::new(params.seed);
+    let pos_w = params.positive_share / positives.len() as f64;
+    let neg_w = if negatives.is_empty() {
+        0.0
+    } else {
+        (1.0 - params.positive_share) / negatives.len() as f64
+    };
+    let mut examples: Vec<Example> = Vec::new();
+    for s in positives.iter().chain(&negatives) {
+        let pyr = cache
+            .get(&s.image)
+            .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", s.image.display())))?;
+        let locs = det0.locations(&pyr, params.max_truncation);
+        let ann = s.annotation.as_ref().filter(|a| a.label == label);
+        let truth = match ann {
+            Some(a) => {
+                let best = locs
+                    .iter()
+                    .filter(|l| l.view == a.viewpoint)
+                    .map(|l| (box_iou(det0.grid(&pyr, l).pixel_box(), a.bbox), *l))
+                    .max_by(|x, y| x.0.total_cmp(&y.0).then(y.1.cmp(&x.1)));
+                let Some((iou, location)) = best else {
+                    report
+                        .skipped
+                        .push(format!("{}: no location fits", s.image.display()));
+                    continue;
+                };
+                if iou < 0.5 {
+                    report.skipped.push(format!(
+                        "{}: best template box overlaps the annotation only {iou:.2}",
+                        s.image.display()
+                    ));
+                    continue;
+                }
+                let visible = IntegralMask::new(&a.visible);
+                let grid = det0.grid(&pyr, &location);
+                let mut cells = Vec::new();
+                cell_truth(&grid, &visible, &mut cells);
+                let mut psi = vec![0.0; layout.len];
+                let (problem, feats, truncated) = det0.problem_at(&pyr, &location);
+                let j = joint_feature(&feats, &cells, &problem, truncated);
+                layout.add_psi(
+                    location.view,
+                    &j,
+                    1.0,
+                    &mut psi,
+                    params.hop,
+                    params.pairwise,
+                );
+                Some(GroundTruth {
+                    visible,
+                    location,
+                    bbox: grid.pixel_box(),
+                    cells,
+                    psi,
+                })
+            }
+            None => None,
+        };
+        // Seeds: random locations away from the object.
+        let mut seeds = Vec::new();
+        for _ in 0..params.init_locations * 4 {
+            if seeds.len() >= params.init_locations || locs.is_empty() {
+                break;
+            }
+            let l = locs[rng.range_usize(0, locs.len())];
+            let far = truth
+                .as_ref()
+                .is_none_or(|t| box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < 0.3);
+            if far {
+                seeds.push(l);
+            }
+        }
+        if let Some(t) = &truth {
+            seeds.push(t.location);
+        }
+        let weight = if truth.is_some() { pos_w } else { neg_w };
+        examples.push(Example {
+            pyr,
+            weight,
+            truth,
+            cache: seeds,
+        });
+    }
+    report.positives = examples.iter().filter(|e| e.truth.is_some()).count();
+    report.negatives = examples.len() - report.positives;
+    if report.positives == 0 {
+        return Err(TrainError::NoData(format!(
+            "no usable positive image of {label}"
+        )));
+    }
+    // Re-weight in case positives were skipped.
+    let pos_w = params.positive_share / report.positives as f64;
+    for e in &mut examples {
+        if e.truth.is_some() {
+            e.weight = pos_w;
+        }
+    }
+
+    let nonneg = layout.nonneg();
+    let mut ws = WorkingSet::default();
+    let mut w = vec![0.0; layout.len];
+    let mut xi = 0.0;
+    let mut approx_done = false;
+    progress.set_length(params.max_passes as u64);
+    progress.set_position(0);
+    for pass in 0..=params.max_passes {
+        // Inner iterations over the cached locations (the first pass starts
+        // from the seeds: the initialisation).
+        for _ in 0..params.max_inner {
+            let views = layout.to_views(&w);
+            let det = Detector::new(&views)?;
+            let t = Instant::now();
+            let round = search(&det, &layout, &mut examples, params, false, None)?;
+            report.cached_seconds += t.elapsed().as_secs_f64();
+            let viol = round.plane.b - dot(&round.plane.g, &w);
+            report.iterations += 1;
+            if viol <= xi + params.epsilon * 0.5 {
+                break;
+            }
+            let t = Instant::now();
+            ws.add(round.plane);
+            let sol = ws.solve(params.c, &nonneg)?;
+            report.qp_seconds += t.elapsed().as_secs_f64();
+            w = sol.w;
+            xi = sol.xi;
+            report.objective.push(sol.objective);
+        }
+        if pass == params.max_passes {
+            break;
+        }
+        // A full search at every location of every image.
+        let views = layout.to_views(&w);
+        let det = Detector::new(&views)?;
+        let t = Instant::now();
+        // Budgeted searches mine hard examples cheaply while the weights
+        // still move; the last passes are exact and decide convergence.
+        let exact = pass + params.exact_passes >= params.max_passes || approx_done;
+        let budget = (!exact).then_some(params.mining_budget);
+        let round = search(&det, &layout, &mut examples, params, true, budget)?;
+        report.full_seconds += t.elapsed().as_secs_f64();
+        if exact {
+            report.exact_passes += 1;
+        }
+        report.full_min_cuts.push(round.min_cuts);
+        let viol = round.plane.b - dot(&round.plane.g, &w);
+        report.full_violation.push(viol);
+        report.passes += 1;
+        progress.inc(1);
+        progress.set_message(format!(
+            "{label}: pass {} violation {viol:.4} slack {xi:.4} loss {:.3}",
+            pass + 1,
+            round.loss
+        ));
+        if viol <= xi + params.epsilon {
+            if exact {
+                report.converged = true;
+                break;
+            }
+            approx_done = true;
+            continue;
+        }
+        ws.add(round.plane);
+        let sol = ws.solve(params.c, &nonneg)?;
+        w = sol.w;
+        xi = sol.xi;
+        report.objective.push(sol.objective);
+    }
+    report.planes = ws.planes.len();
+    report.seconds = start.elapsed().as_secs_f64();
+    let views = layout.to_views(&w);
+    let meta = ModelMeta {
+        format_version: FORMAT_VERSION,
+        name: label.to_string(),
+        cell_size: CELL_SIZE,
+        hop_k: params.k,
+        pyramid: params.pyramid,
+        segmentation: params.segmentation,
+        detection: DetectParams {
+            threshold: params.threshold,
+            max_truncation: params.max_truncation,
+            ..DetectParams::default()
+        },
+        viewpoints: shapes
+            .iter()
+            .map(|&(rows, cols)| ViewMeta {
+                label: label.to_string(),
+                rows,
+                cols,
+            })
+            .collect(),
+        provenance: serde_json::json!({
+            "source": "sdhop-train: 1-slack structural SVM (cutting plane, clarabel dual QP)",
+            "params": params,
+            "report": {
+                "passes": report.passes,
+                "iterations": report.iterations,
+                "converged": report.converged,
+                "positives": report.positives,
+                "negatives": report.negatives,
+                "seconds": report.seconds,
+            },
+        }),
+    };
+    Ok((Model::new(meta, views)?, report))
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Template `(rows, cols)` of a viewpoint from its training boxes.
+fn template_shape(
+    positives: &[&Sample],
+    view: usize,
+    params: &TrainParams,
+) -> Result<(usize, usize), TrainError> {
+    if let Some([r, c]) = params.template {
+        if r == 0 || c == 0 {
+            return Err(TrainError::NoData("template size must be positive".into()));
+        }
+        return Ok((r, c));
+    }
+    let mut ws: Vec<f64> = Vec::new();
+    let mut hs: Vec<f64> = Vec::new();
+    for a in positives.iter().filter_map(|s| s.annotation.as_ref()) {
+        if a.viewpoint == view {
+            ws.push(a.bbox.2);
+            hs.push(a.bbox.3);
+        }
+    }
+    if ws.is_empty() {
+        return Err(TrainError::NoData(format!("viewpoint {view} has no box")));
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let s = params.template_scale / CELL_SIZE as f64;
+    let cols = (median(&mut ws) * s).round().max(1.0) as usize;
+    let rows = (median(&mut hs) * s).round().max(1.0) as usize;
+    Ok((rows, cols))
+}
+
+/// One cutting-plane round: the most violated output of every example (over
+/// all locations when `full`, else over its cache) summed into a plane.
+fn search(
+    det: &Detector,
+    layout: &Layout,
+    examples: &mut [Example],
+    params: &TrainParams,
+    full: bool,
+    budget: Option<usize>,
+) -> Result<Round, TrainError> {
+    let results: Vec<Result<Found, TrainError>> = examples
+        .par_iter()
+        .map(|ex| {
+            let aug = TruthLoss {
+                truth: ex.truth.as_ref().map(|t| Truth {
+                    bbox: t.bbox,
+                    visible: &t.visible,
+                }),
+                kind: params.loss,
+            };
+            // The empty output: loss 1 on a positive, 0 on a negative.
+            let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };
+            // The cached locations first: their best value is a tight
+            // cut-off for the exact search over everything.
+            let cached = det.most_violated_among(&ex.pyr, &ex.cache, &aug, floor);
+            let mut cuts = 0;
+            let mut extra = Vec::new();
+            let best = if full {
+                let start = cached.as_ref().map_or(floor, |b| b.value);
+                let (found, others, stats) =
+                    det.most_violated(&ex.pyr, &aug, start, params.max_truncation, budget)?;
+                cuts = stats.min_cuts;
+                extra = others;
+                found.filter(|f| f.value > start).or(cached)
+            } else {
+                cached
+            };
+            let mut g = vec![0.0; layout.len];
+            let (loss, loc) = match &best {
+                Some(b) => {
+                    let (problem, feats, truncated) = det.problem_at(&ex.pyr, &b.location);
+                    let psi = joint_feature(&feats, &b.cells, &problem, truncated);
+                    layout.add_psi(
+                        b.location.view,
+                        &psi,
+                        ex.weight,
+                        &mut g,
+                        params.hop,
+                        params.pairwise,
+                    );
+                    let grid = det.grid(&ex.pyr, &b.location);
+                    (aug.loss(&grid, &b.cells), Some(b.location))
+                }
+                None => (floor, None),
+            };
+            if let Some(t) = &ex.truth {
+                // Skip the constraint of the ground truth against itself.
+                let is_truth = best
+                    .as_ref()
+                    .is_some_and(|b| b.location == t.location && b.cells == t.cells);
+                if is_truth {
+                    return Ok(Found {
+                        g: vec![0.0; layout.len],
+                        b: 0.0,
+                        loss: 0.0,
+                        location: loc,
+                        min_cuts: cuts,
+                        extra,
+                    });
+                }
+                for (gi, pi) in g.iter_mut().zip(&t.psi) {
+                    *gi -= ex.weight * pi;
+                }
+            }
+            Ok(Found {
+                g,
+                b: ex.weight * loss,
+                loss,
+                location: loc,
+                min_cuts: cuts,
+                extra,
+            })
+        })
+        .collect();
+    let mut g = vec![0.0; layout.len];
+    let mut b = 0.0;
+    let mut loss = 0.0;
+    let mut wsum = 0.0;
+    let mut min_cuts = 0;
+    for (ex, r) in examples.iter_mut().zip(results) {
+        let Found {
+            g: gi,
+            b: bi,
+            loss: li,
+            location: loc,
+            min_cuts: cuts,
+            extra,
+        } = r?;
+        min_cuts += cuts;
+        for (a, x) in g.iter_mut().zip(&gi) {
+            *a += x;
+        }
+        b += bi;
+        loss += ex.weight * li;
+        wsum += ex.weight;
+        if full {
+            for l in loc.into_iter().chain(extra) {
+                if !ex.cache.contains(&l) {
+                    ex.cache.push(l);
+                }
+            }
+            if ex.cache.len() > params.cache_size {
+                // Keep the ground truth (last seed) and the newest.
+                let drop = ex.cache.len() - params.cache_size;
+                let keep_truth = ex.truth.as_ref().map(|t| t.location);
+                let mut dropped = 0;
+                ex.cache.retain(|l| {
+                    if dropped < drop && Some(*l) != keep_truth {
+                        dropped += 1;
+                        false
+                    } else {
+                        true
+                    }
+                });
+            }
+        }
+    }
+    Ok(Round {
+        plane: Plane { g, b },
+        loss: loss / wsum.max(1e-12),
+        min_cuts,
+    })
+}
+
+/// A progress bar in the style used across the CLI (hidden when not a TTY).
+pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len);
+    if let Ok(style) =
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+    {
+        pb.set_style(style);
+    }
+    pb.set_message(what.to_string());
+    pb
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::energy::hop_curvature;
+
+    #[test]
+    fn exact_concave_weights_have_non_negative_curvature() {
+        let mut rng = SplitMix64::new(9);
+        for _ in 0..2000 {
+            let k = rng.range_usize(1, 8);
+            let scale = 10f64.powf(rng.range_f64(-4.0, 3.0));
+            let c: Vec<f64> = (0..k - 1)
+                .map(|_| {
+                    if rng.next_f64() < 0.4 {
+                        0.0
+                    } else {
+                        rng.range_f64(-0.2, 1.0) * scale
+                    }
+                })
+                .collect();
+            let w = exact_concave(
+                rng.range_f64(-1.0, 1.0) * scale,
+                rng.range_f64(-1.0, 1.0) * scale,
+                &c,
+            );
+            let w64: Vec<f64> = w.iter().map(|&v| f64::from(v)).collect();
+            for (j, d2) in hop_curvature(&w64).into_iter().enumerate() {
+                assert!(d2 >= 0.0, "curvature {d2} at {j} of {w:?}");
+                // Close to the requested curvature.
+                assert!((d2 - c[j].max(0.0)).abs() <= 1e-5 * scale.max(1e-30) * 8.0);
+            }
+        }
+    }
+
+    /// The training parametrisation reproduces `w_hop . theta`.
+    #[test]
+    fn hop_reparametrisation_preserves_the_energy() {
+        let layout = Layout::new(vec![(1, 1)], 4);
+        let mut rng = SplitMix64::new(2);
+        for _ in 0..100 {
+            let mut w = vec![0.0; layout.len];
+            for v in w.iter_mut() {
+                *v = rng.range_f64(-1.0, 1.0);
+            }
+            let h = layout.hop_index(0);
+            for j in 2..=4 {
+                w[h + j] = w[h + j].abs();
+            }
+            let views = layout.to_views(&w);
+            let mut psi = vec![0.0; joint_feature_len(1, 4)];
+            let hp = 2 * HOG_DIM + 1 + 2;
+            for t in &mut psi[hp..hp + 5] {
+                *t = rng.range_f64(0.0, 3.0);
+            }
+            let mut train_psi = vec![0.0; layout.len];
+            layout.add_psi(0, &psi, 1.0, &mut train_psi, true, true);
+            let direct: f64 = views[0]
+                .w_hop
+                .iter()
+                .zip(&psi[hp..hp + 5])
+                .map(|(a, b)| f64::from(*a) * b)
+                .sum();
+            let via: f64 = (0..5).map(|j| w[h + j] * train_psi[h + j]).sum();
+            // f32 weights: round-off relative to the size of the energy.
+            assert!((direct - via).abs() < 1e-5 * (1.0 + direct.abs()), "{direct} vs {via}");
+        }
+    }
+}
