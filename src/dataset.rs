@@ -617,4 +617,65 @@ mod tests {
         assert_eq!(decode_coco_rle_string("1"), Some(vec![1]));
         assert_eq!(decode_coco_rle_string("\u{7f}"), None);
     }
+
+    /// A tiny COCO file written here: one good annotation (polygon), one
+    /// whose box lies outside the image, one with an empty mask, one whose
+    /// image is missing, and an image without annotation (a negative).
+    #[test]
+    fn coco_reader_keeps_good_annotations_and_reports_bad_ones() {
+        let dir = std::env::temp_dir().join(format!("sdhop-coco-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for name in ["a.png", "b.png", "c.png", "neg.png"] {
+            image::RgbImage::new(40, 30).save(dir.join(name)).unwrap();
+        }
+        let json = serde_json::json!({
+            "images": [
+                {"id": 1, "file_name": "a.png", "width": 40, "height": 30},
+                {"id": 2, "file_name": "b.png", "width": 40, "height": 30},
+                {"id": 3, "file_name": "c.png", "width": 40, "height": 30},
+                {"id": 4, "file_name": "missing.png", "width": 40, "height": 30},
+                {"id": 5, "file_name": "neg.png", "width": 40, "height": 30}
+            ],
+            "categories": [{"id": 7, "name": "mug"}],
+            "annotations": [
+                {"image_id": 1, "category_id": 7, "bbox": [5, 5, 20, 15], "viewpoint": 1,
+                 "segmentation": [[5, 5, 25, 5, 25, 20, 5, 20]]},
+                {"image_id": 2, "category_id": 7, "bbox": [50, 5, 20, 15],
+                 "segmentation": [[5, 5, 25, 5, 25, 20, 5, 20]]},
+                {"image_id": 3, "category_id": 7, "bbox": [5, 5, 20, 15],
+                 "segmentation": {"size": [30, 40], "counts": [1200]}},
+                {"image_id": 4, "category_id": 7, "bbox": [5, 5, 20, 15],
+                 "segmentation": [[5, 5, 25, 5, 25, 20, 5, 20]]}
+            ]
+        });
+        let path = dir.join("ann.json");
+        std::fs::write(&path, json.to_string()).unwrap();
+        let loaded = load_coco(&path, &dir, "mug").unwrap();
+        let positives: Vec<_> = loaded
+            .samples
+            .iter()
+            .filter(|s| s.annotation.is_some())
+            .collect();
+        assert_eq!(positives.len(), 1);
+        let a = positives[0].annotation.as_ref().unwrap();
+        assert_eq!((a.viewpoint, a.visible.area()), (1, 20 * 15));
+        assert_eq!(loaded.samples.len(), 2, "one positive and one negative");
+        assert_eq!(loaded.skipped.len(), 3, "{:?}", loaded.skipped);
+        assert!(loaded
+            .skipped
+            .iter()
+            .any(|m| m.contains("b.png") && m.contains("outside")));
+        assert!(loaded
+            .skipped
+            .iter()
+            .any(|m| m.contains("c.png") && m.contains("empty")));
+        assert!(loaded.skipped.iter().any(|m| m.contains("missing.png")));
+        assert!(load_coco(&path, &dir, "teapot").is_err());
+        std::fs::write(&path, "{not json").unwrap();
+        assert!(matches!(
+            load_coco(&path, &dir, "mug"),
+            Err(DatasetError::Invalid { .. })
+        ));
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -132,7 +132,9 @@ pub fn recall_fppi_png(
                 if text {
                     series
                         .label(PUBLISHED.get(i).copied().unwrap_or("published"))
-                        .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], color));
+                        .legend(move |(x, y)| {
+                            PathElement::new([(x, y), (x + 14, y)], color.stroke_width(3))
+                        });
                 }
             }
             let ours = |c: &[f64]| -> Vec<(f64, f64)> {
@@ -147,15 +149,17 @@ pub fn recall_fppi_png(
                 .draw_series(LineSeries::new(ours(&s.curve), blue.stroke_width(3)))
                 .map_err(draw_err)?;
             if text {
-                a.label("SD-HOP")
-                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], blue));
+                a.label("SD-HOP").legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 14, y)], blue.stroke_width(3))
+                });
             }
             let b = chart
                 .draw_series(LineSeries::new(ours(&s.curve_cross), red.stroke_width(2)))
                 .map_err(draw_err)?;
             if text {
-                b.label("SD-HOP cross-object")
-                    .legend(move |(x, y)| PathElement::new([(x, y), (x + 14, y)], red));
+                b.label("SD-HOP cross-object").legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 14, y)], red.stroke_width(3))
+                });
                 chart
                     .configure_series_labels()
                     .position(SeriesLabelPosition::LowerRight)

@@ -921,7 +921,10 @@ mod tests {
                 .sum();
             let via: f64 = (0..5).map(|j| w[h + j] * train_psi[h + j]).sum();
             // f32 weights: round-off relative to the size of the energy.
-            assert!((direct - via).abs() < 1e-5 * (1.0 + direct.abs()), "{direct} vs {via}");
+            assert!(
+                (direct - via).abs() < 1e-5 * (1.0 + direct.abs()),
+                "{direct} vs {via}"
+            );
         }
     }
 }
