@@ -281,6 +281,16 @@ struct CvArgs {
 }
 
 #[derive(clap::Args)]
+struct AnnotateArgs {
+    /// Folder of weights files (each named after its object).
+    #[arg(long, default_value = "models")]
+    models_dir: PathBuf,
+    /// Report written by `cv`.
+    #[arg(long)]
+    cv_report: PathBuf,
+}
+
+#[derive(clap::Args)]
 struct EvalArgs {
     /// CMU_KO8 root.
     #[arg(long)]
@@ -310,6 +320,9 @@ enum Command {
     Cv(CvArgs),
     /// Evaluate weights files on CMU_KO8 images: figures, JSON and a plot.
     Eval(EvalArgs),
+    /// Store the figures of a `cv` report in the models' metadata (for
+    /// models trained with the same settings without `--cv-report`).
+    Annotate(AnnotateArgs),
     /// Detect objects in one image; prints the detection JSON of `POST /detect`.
     Detect(DetectArgs),
     /// Generate a synthetic occluded scene and a hand-built model of its object,
@@ -506,6 +519,46 @@ fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
     Ok(())
 }
 
+/// Stores a cross-validation report's figures for the model's object in its
+/// provenance.
+fn add_cv_figures(model: &mut Model, cv: &serde_json::Value) {
+    let name = model.meta.name.clone();
+    let figures = cv["evaluation"]["objects"]
+        .as_array()
+        .and_then(|a| a.iter().find(|o| o["object"] == name.as_str()))
+        .cloned();
+    if let Some(obj) = model.meta.provenance.as_object_mut() {
+        obj.insert(
+            "cross_validation".into(),
+            serde_json::json!({
+                "folds": cv["folds"],
+                "c": cv["c"],
+                "params": cv["params"],
+                "figures": figures,
+                "mean": cv["evaluation"]["mean"],
+            }),
+        );
+    }
+}
+
+fn read_json(p: &Path) -> Result<serde_json::Value, Failure> {
+    let text =
+        std::fs::read_to_string(p).map_err(|e| Failure::io(format!("{}: {e}", p.display())))?;
+    serde_json::from_str(&text).map_err(|e| Failure::input(format!("{}: {e}", p.display())))
+}
+
+fn run_annotate(args: &AnnotateArgs) -> Result<(), Failure> {
+    let cv = read_json(&args.cv_report)?;
+    let mut models = load_model_dir(&args.models_dir)?;
+    for m in &mut models {
+        add_cv_figures(m, &cv);
+        let path = args.models_dir.join(format!("{}.safetensors", m.meta.name));
+        m.save(&path).map_err(Failure::io)?;
+        println!("{}: cross-validated figures stored", path.display());
+    }
+    Ok(())
+}
+
 fn run_train(args: &TrainArgs) -> Result<(), Failure> {
     let (params, neg) = args.settings.params()?;
     std::fs::create_dir_all(&args.out)
@@ -548,27 +601,14 @@ fn run_train(args: &TrainArgs) -> Result<(), Failure> {
         train_objects(&data, None, &params, &neg, &cache).map_err(Failure::input)?
     };
     for (mut model, report) in trained {
+        if let Some(obj) = model.meta.provenance.as_object_mut() {
+            obj.insert(
+                "negatives".into(),
+                serde_json::to_value(&neg).map_err(Failure::io)?,
+            );
+        }
         if let Some(cv) = &cv {
-            let name = model.meta.name.clone();
-            let figures = cv["evaluation"]["objects"]
-                .as_array()
-                .and_then(|a| a.iter().find(|o| o["object"] == name.as_str()))
-                .cloned();
-            if let Some(obj) = model.meta.provenance.as_object_mut() {
-                obj.insert(
-                    "cross_validation".into(),
-                    serde_json::json!({
-                        "folds": cv["folds"],
-                        "c": cv["c"],
-                        "figures": figures,
-                        "mean": cv["evaluation"]["mean"],
-                    }),
-                );
-                obj.insert(
-                    "negatives".into(),
-                    serde_json::to_value(&neg).map_err(Failure::io)?,
-                );
-            }
+            add_cv_figures(&mut model, cv);
         }
         let path = args.out.join(format!("{}.safetensors", model.meta.name));
         model.save(&path).map_err(Failure::io)?;
@@ -754,6 +794,7 @@ fn main() -> ExitCode {
         Command::Train(a) => run_train(a),
         Command::Cv(a) => run_cv(a),
         Command::Eval(a) => run_eval(a),
+        Command::Annotate(a) => run_annotate(a),
         Command::Detect(a) => run_detect(a),
         Command::Demo(a) => run_demo(a),
     };

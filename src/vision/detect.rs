@@ -740,12 +740,24 @@ impl<'a> Detector<'a> {
         });
 
         let t = Instant::now();
+        // Branch and bound: locations are visited in order of their bound,
+        // and once `max_detections` detections survive non-maximum
+        // suppression among those solved, the worst of them is the cut-off:
+        // a location whose bound is above it ranks after all of them in the
+        // greedy suppression, so it can never be reported.
         let single = params.max_detections == 1 && params.prune;
+        let ranked = params.prune && budget.is_none();
         let mut solved: Vec<Solved> = Vec::new();
         let mut best = cut;
-        let chunk = if single { 64 } else { cands.len().max(1) };
+        let chunk = if single {
+            64
+        } else if ranked {
+            256
+        } else {
+            cands.len().max(1)
+        };
         for block in cands.chunks(chunk) {
-            if single && block[0].bound - margin(block[0].bound) > best {
+            if (single || ranked) && block[0].bound - margin(block[0].bound) > best {
                 break;
             }
             if budget.is_some_and(|b| stats.min_cuts >= b) {
@@ -755,7 +767,7 @@ impl<'a> Detector<'a> {
             let out: Vec<Option<Solved>> = block
                 .par_iter()
                 .map_init(Scratch::default, |s, c| {
-                    if single && c.bound - margin(c.bound) > cutoff {
+                    if (single || ranked) && c.bound - margin(c.bound) > cutoff {
                         return None;
                     }
                     self.solve(pyr, c, cutoff, params.prune, aug, s)
@@ -770,10 +782,39 @@ impl<'a> Detector<'a> {
                     solved.push(r);
                 }
             }
+            if ranked && !single && solved.len() >= params.max_detections {
+                if let Some(e) = self.kth_energy(pyr, &mut solved, params) {
+                    best = best.min(e);
+                }
+            }
         }
         stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
         stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
         (solved, stats)
+    }
+
+    /// The energy of the last of `max_detections` detections that survive
+    /// greedy non-maximum suppression among `solved` (sorted in place), if
+    /// that many survive.
+    fn kth_energy(
+        &self,
+        pyr: &FeaturePyramid,
+        solved: &mut [Solved],
+        params: &DetectParams,
+    ) -> Option<f64> {
+        sort_solved(solved);
+        let mut kept: Vec<(f64, f64, f64, f64)> = Vec::new();
+        for s in solved.iter() {
+            let b = self.grid(pyr, &s.cand.location()).pixel_box();
+            if kept.iter().any(|k| box_iou(*k, b) > params.nms_iou) {
+                continue;
+            }
+            kept.push(b);
+            if kept.len() == params.max_detections {
+                return Some(s.energy);
+            }
+        }
+        None
     }
 
     /// Sorts by score (ties in a fixed order), converts to image boxes and
@@ -784,16 +825,7 @@ impl<'a> Detector<'a> {
         mut solved: Vec<Solved>,
         params: &DetectParams,
     ) -> Vec<Detection> {
-        solved.sort_by(|a, b| {
-            a.energy.total_cmp(&b.energy).then(
-                (a.cand.level, a.cand.view, a.cand.y, a.cand.x).cmp(&(
-                    b.cand.level,
-                    b.cand.view,
-                    b.cand.y,
-                    b.cand.x,
-                )),
-            )
-        });
+        sort_solved(&mut solved);
         let mut out: Vec<Detection> = Vec::new();
         for s in solved {
             if out.len() >= params.max_detections {
@@ -825,6 +857,15 @@ impl<'a> Detector<'a> {
         }
         out
     }
+}
+
+/// Best energy first, ties in a fixed order.
+fn sort_solved(solved: &mut [Solved]) {
+    solved.sort_by(|a, b| {
+        a.energy
+            .total_cmp(&b.energy)
+            .then(a.cand.location().cmp(&b.cand.location()))
+    });
 }
 
 /// IoU of two boxes `(x, y, w, h)`.
