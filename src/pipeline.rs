@@ -121,7 +121,7 @@ pub fn detect_image(
             height: h,
         });
     }
-    detect_with(w, h, models, opts, &mut Vec::new(), |m| {
+    detect_with(w, h, models, opts, |m| {
         FeaturePyramid::build(img, &m.meta.pyramid, &m.meta.segmentation)
     })
 }
@@ -164,13 +164,13 @@ fn detect_with(
     h: usize,
     models: &[&Model],
     opts: &DetectOptions,
-    pyramids: &mut Vec<FeaturePyramid>,
     build: impl Fn(&Model) -> Result<FeaturePyramid, VisionError>,
 ) -> Result<DetectResponse, VisionError> {
     let start = Instant::now();
     let mut timing = Timing::default();
     let mut stats = DetectStats::default();
     let mut detections: Vec<DetectionJson> = Vec::new();
+    let mut pyramids: Vec<FeaturePyramid> = Vec::new();
     for model in models {
         let m = &model.meta;
         let idx = match pyramids

@@ -381,13 +381,7 @@ fn read_image(path: &Path, max_pixels: usize) -> Result<ColorImage, Failure> {
 fn load_models(args: &DetectArgs) -> Result<Vec<Model>, Failure> {
     let mut paths = args.models.clone();
     if let Some(dir) = &args.models_dir {
-        let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-            .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
-            .collect();
-        found.sort();
-        paths.extend(found);
+        paths.extend(model_paths(dir)?);
     }
     if paths.is_empty() {
         return Err(Failure::input("no model to run"));
@@ -775,14 +769,19 @@ fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     write_evaluation(&args.out, &ids, &responses, &report, &evaluation, &args.ko8)
 }
 
-fn load_model_dir(dir: &Path) -> Result<Vec<Model>, Failure> {
+/// The `*.safetensors` files of a folder, sorted.
+fn model_paths(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
     let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
         .collect();
     found.sort();
-    found
+    Ok(found)
+}
+
+fn load_model_dir(dir: &Path) -> Result<Vec<Model>, Failure> {
+    model_paths(dir)?
         .iter()
         .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))
         .collect()
