@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use sdhop::model::Model;
-use sdhop::train::ko8::{detect_all, score, Ko8Data};
+use sdhop::train::ko8::{detect_all, score, EvalDetect, Ko8Data};
 use sdhop::train::PyramidCache;
 
 fn data_root() -> Option<PathBuf> {
@@ -47,7 +47,16 @@ fn shipped_models_localize_a_fixed_ko8_subset() {
             &indicatif::ProgressBar::hidden(),
         )
         .unwrap();
-    let responses = detect_all(&images, &refs, &cache, 20).unwrap();
+    let responses = detect_all(
+        &images,
+        &refs,
+        &cache,
+        EvalDetect {
+            max_detections: 20,
+            threshold: None,
+        },
+    )
+    .unwrap();
     let eval = score(&data, &images, &responses);
     eprintln!("{}", sdhop::eval::table(&eval.objects));
     assert!(eval.mean.auc >= 0.6, "mean AUC {}", eval.mean.auc);

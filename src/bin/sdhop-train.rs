@@ -13,7 +13,8 @@ use sdhop::pipeline::{
 };
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
 use sdhop::train::ko8::{
-    cross_validate, detect_all, score, train_objects, Evaluation, Ko8Data, NegativeSet,
+    cross_validate, detect_all, score, train_objects, EvalDetect, Evaluation, FoldModels, Ko8Data,
+    NegativeSet,
 };
 use sdhop::train::loss::LossKind;
 use sdhop::train::{progress_bar, train_model, PyramidCache, TrainParams};
@@ -276,6 +277,20 @@ struct CvArgs {
     /// Detections kept per image (as the acceptance procedure asks).
     #[arg(long, default_value_t = 20)]
     max_detections: usize,
+    /// Run only these folds (numbered from 0; all by default).
+    #[arg(long, value_delimiter = ',')]
+    only_folds: Vec<usize>,
+    /// Save each fold's models in DIR/fold-F/.
+    #[arg(long, value_name = "DIR", conflicts_with = "load_models")]
+    save_models: Option<PathBuf>,
+    /// Load each fold's models from DIR/fold-F/ (saved by an earlier run
+    /// with the same folds) instead of training: compares detection
+    /// settings such as --detect-threshold without training again.
+    #[arg(long, value_name = "DIR")]
+    load_models: Option<PathBuf>,
+    /// Detection threshold used in the evaluation (default: the models').
+    #[arg(long, allow_negative_numbers = true)]
+    detect_threshold: Option<f64>,
     #[command(flatten)]
     settings: TrainSettings,
 }
@@ -308,6 +323,9 @@ struct EvalArgs {
     /// Only every n-th image of each object (a quick check).
     #[arg(long, default_value_t = 1)]
     every: usize,
+    /// Detection threshold (default: each model's own).
+    #[arg(long, allow_negative_numbers = true)]
+    detect_threshold: Option<f64>,
 }
 
 #[derive(Subcommand)]
@@ -688,13 +706,24 @@ fn run_cv(args: &CvArgs) -> Result<(), Failure> {
     for &c in &cs {
         params.c = c;
         let t = std::time::Instant::now();
+        let source = match (&args.save_models, &args.load_models) {
+            (_, Some(d)) => FoldModels::Load(d),
+            (Some(d), None) => FoldModels::TrainAndSave(d),
+            (None, None) => FoldModels::Train,
+        };
+        let how = EvalDetect {
+            max_detections: args.max_detections,
+            threshold: args.detect_threshold,
+        };
         let cv = cross_validate(
             &data,
             args.folds,
+            &args.only_folds,
             &params,
             &neg,
             &cache,
-            args.max_detections,
+            how,
+            source,
         )
         .map_err(Failure::input)?;
         let secs = t.elapsed().as_secs_f64();
@@ -757,8 +786,11 @@ fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
         .fill(&images, &m0.meta.pyramid, &m0.meta.segmentation, &pb)
         .map_err(Failure::input)?;
     pb.finish_and_clear();
-    let responses =
-        detect_all(&images, &refs, &cache, args.max_detections).map_err(Failure::input)?;
+    let how = EvalDetect {
+        max_detections: args.max_detections,
+        threshold: args.detect_threshold,
+    };
+    let responses = detect_all(&images, &refs, &cache, how).map_err(Failure::input)?;
     let evaluation = score(&data, &images, &responses);
     let report = serde_json::json!({
         "models": models.iter().map(|m| &m.meta.name).collect::<Vec<_>>(),

@@ -137,17 +137,27 @@ pub fn train_objects(
     Ok(out)
 }
 
+/// How detection runs in an evaluation.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EvalDetect {
+    /// Detections kept per image (all models together).
+    pub max_detections: usize,
+    /// Overrides the models' own thresholds.
+    pub threshold: Option<f64>,
+}
+
 /// Detections of `models` on `images`, in the response shape of `/detect`
-/// (both masks, at most `max_detections` in all).
+/// (both masks).
 pub fn detect_all(
     images: &[&Sample],
     models: &[&Model],
     cache: &PyramidCache,
-    max_detections: usize,
+    how: EvalDetect,
 ) -> Result<Vec<DetectResponse>, TrainError> {
     use rayon::prelude::*;
     let opts = DetectOptions {
-        max_detections: Some(max_detections),
+        max_detections: Some(how.max_detections),
+        threshold: how.threshold,
         masks: MaskMode::Both,
         ..DetectOptions::default()
     };
@@ -205,28 +215,83 @@ pub struct CrossValidation {
     pub reports: Vec<Vec<TrainReport>>,
 }
 
-/// `folds`-fold cross-validation of every object's model.
-pub fn cross_validate(
+/// Where the models of each fold come from.
+#[derive(Clone, Copy, Debug)]
+pub enum FoldModels<'a> {
+    /// Trained and dropped.
+    Train,
+    /// Trained and saved as `DIR/fold-F/<object>.safetensors`.
+    TrainAndSave(&'a Path),
+    /// Loaded from `DIR/fold-F/<object>.safetensors` (saved by an earlier run
+    /// with the same number of folds), so detection settings can be compared
+    /// without training again.
+    Load(&'a Path),
+}
+
+/// The folder of fold `f`'s models.
+pub fn fold_dir(dir: &Path, f: usize) -> std::path::PathBuf {
+    dir.join(format!("fold-{f}"))
+}
+
+/// The models of fold `f`, trained or loaded.
+fn fold_models(
     data: &Ko8Data,
-    folds: usize,
+    fold: (usize, usize),
     params: &TrainParams,
     neg: &NegativeSet,
     cache: &PyramidCache,
-    max_detections: usize,
+    source: FoldModels,
+) -> Result<Vec<(Model, Option<TrainReport>)>, TrainError> {
+    if let FoldModels::Load(dir) = source {
+        return data
+            .objects
+            .iter()
+            .map(|o| {
+                let p = fold_dir(dir, fold.0).join(format!("{o}.safetensors"));
+                Ok((Model::load(&p)?, None))
+            })
+            .collect();
+    }
+    let trained = train_objects(data, Some(fold), params, neg, cache)?;
+    if let FoldModels::TrainAndSave(dir) = source {
+        let d = fold_dir(dir, fold.0);
+        std::fs::create_dir_all(&d).map_err(|source| TrainError::Io {
+            path: d.display().to_string(),
+            source,
+        })?;
+        for (m, _) in &trained {
+            m.save(&d.join(format!("{}.safetensors", m.meta.name)))?;
+        }
+    }
+    Ok(trained.into_iter().map(|(m, r)| (m, Some(r))).collect())
+}
+
+/// `folds`-fold cross-validation of every object's model, over the folds
+/// listed in `only` (all when empty).
+#[allow(clippy::too_many_arguments)]
+pub fn cross_validate(
+    data: &Ko8Data,
+    folds: usize,
+    only: &[usize],
+    params: &TrainParams,
+    neg: &NegativeSet,
+    cache: &PyramidCache,
+    how: EvalDetect,
+    source: FoldModels,
 ) -> Result<CrossValidation, TrainError> {
     let mut images: Vec<Sample> = Vec::new();
     let mut responses = Vec::new();
     let mut reports = Vec::new();
-    for f in 0..folds {
-        let trained = train_objects(data, Some((f, folds)), params, neg, cache)?;
+    for f in (0..folds).filter(|f| only.is_empty() || only.contains(f)) {
+        let trained = fold_models(data, (f, folds), params, neg, cache, source)?;
         let models: Vec<&Model> = trained.iter().map(|(m, _)| m).collect();
         let held = data.fold_images(Some((f, folds)));
         let pb = progress_bar(0, "pyramids");
         cache.fill(&held, &params.pyramid, &params.segmentation, &pb)?;
         pb.finish_and_clear();
-        responses.extend(detect_all(&held, &models, cache, max_detections)?);
+        responses.extend(detect_all(&held, &models, cache, how)?);
         images.extend(held.into_iter().cloned());
-        reports.push(trained.into_iter().map(|(_, r)| r).collect());
+        reports.push(trained.into_iter().filter_map(|(_, r)| r).collect());
     }
     let refs: Vec<&Sample> = images.iter().collect();
     let evaluation = score(data, &refs, &responses);

@@ -54,6 +54,11 @@ pub enum TrainError {
     Qp(String),
     #[error("no usable training data: {0}")]
     NoData(String),
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
 }
 
 /// Every setting of training; saved in the model's provenance.

@@ -113,6 +113,63 @@ impl DetectStats {
     }
 }
 
+/// Upper bounds on the number of cliques (distinct segments) among the
+/// cells of any box of a level, in O(1) per box. A box's cells of one
+/// segment form one or more 4-connected pieces, and the first cell of each
+/// piece in raster order has neither its left nor its upper neighbour in the
+/// piece: that neighbour is outside the box or in another segment. Counting
+/// such cells with prefix sums bounds the number of pieces, hence of
+/// cliques.
+struct CliqueCounter {
+    w: usize,
+    h: usize,
+    /// Per row, prefix sums of "the left neighbour is another segment".
+    left: Vec<u32>,
+    /// Per column, prefix sums of "the upper neighbour is another segment".
+    up: Vec<u32>,
+    /// 2D prefix sums of "both neighbours are other segments".
+    both: Vec<u32>,
+}
+
+impl CliqueCounter {
+    fn new(seg: &[u32], w: usize, h: usize) -> Self {
+        let l = |x: usize, y: usize| u32::from(x > 0 && seg[y * w + x - 1] != seg[y * w + x]);
+        let u = |x: usize, y: usize| u32::from(y > 0 && seg[(y - 1) * w + x] != seg[y * w + x]);
+        let mut left = vec![0u32; (w + 1) * h];
+        let mut up = vec![0u32; (h + 1) * w];
+        let mut both = vec![0u32; (w + 1) * (h + 1)];
+        for y in 0..h {
+            for x in 0..w {
+                left[y * (w + 1) + x + 1] = left[y * (w + 1) + x] + l(x, y);
+                up[x * (h + 1) + y + 1] = up[x * (h + 1) + y] + u(x, y);
+                both[(y + 1) * (w + 1) + x + 1] =
+                    both[(y + 1) * (w + 1) + x] + both[y * (w + 1) + x + 1] - both[y * (w + 1) + x]
+                        + l(x, y) * u(x, y);
+            }
+        }
+        Self {
+            w,
+            h,
+            left,
+            up,
+            both,
+        }
+    }
+
+    /// Bound for the cells `[x0, x1) x [y0, y1)` (non-empty, inside the map).
+    fn bound(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> usize {
+        debug_assert!(x0 < x1 && x1 <= self.w && y0 < y1 && y1 <= self.h);
+        let (w1, h1) = (self.w + 1, self.h + 1);
+        let row = self.left[y0 * w1 + x1] - self.left[y0 * w1 + x0 + 1];
+        let col = self.up[x0 * h1 + y1] - self.up[x0 * h1 + y0 + 1];
+        let b = &self.both;
+        let inner = b[y1 * w1 + x1] + b[(y0 + 1) * w1 + x0 + 1]
+            - b[(y0 + 1) * w1 + x1]
+            - b[y1 * w1 + x0 + 1];
+        1 + (row + col + inner) as usize
+    }
+}
+
 /// A viewpoint prepared for scanning.
 struct View<'a> {
     w: &'a ViewWeights,
@@ -376,6 +433,7 @@ impl<'a> Detector<'a> {
         level_idx: usize,
         level: &Level,
         map: &PlanarMap,
+        cliques: Option<&CliqueCounter>,
         vi: usize,
         params: &DetectParams,
         cut: f64,
@@ -412,7 +470,13 @@ impl<'a> Detector<'a> {
                 let hop = if view.hop_min >= 0.0 {
                     view.hop_min
                 } else {
-                    view.hop_min * inside as f64
+                    let most = cliques.map_or(inside, |c| {
+                        let (x0, y0) = (x.max(0) as usize, y.max(0) as usize);
+                        let x1 = ((x + cols as isize) as usize).min(mw);
+                        let y1 = ((y + rows as isize) as usize).min(mh);
+                        c.bound(x0, x1, y0, y1).min(inside)
+                    });
+                    view.hop_min * most as f64
                 };
                 let base =
                     hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias) - max_loss;
@@ -463,7 +527,12 @@ impl<'a> Detector<'a> {
                 return None;
             }
         }
-        let energy = p.solve(&mut s.graph, &mut s.labels);
+        let limit = if prune {
+            cut + margin(cut)
+        } else {
+            f64::INFINITY
+        };
+        let energy = p.solve_below(&mut s.graph, &mut s.labels, limit)?;
         Some(Solved {
             cand: *cand,
             energy,
@@ -714,6 +783,14 @@ impl<'a> Detector<'a> {
         } else {
             Vec::new()
         };
+        let counters: Vec<CliqueCounter> = if params.prune {
+            pyr.levels
+                .par_iter()
+                .map(|l| CliqueCounter::new(&l.cell_segments, l.hog.width(), l.hog.height()))
+                .collect()
+        } else {
+            Vec::new()
+        };
         let empty = PlanarMap::new(&HogMap::zeros(0, 0), 0, 0);
         let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
             .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
@@ -722,7 +799,8 @@ impl<'a> Detector<'a> {
             .par_iter()
             .map(|&(l, v)| {
                 let map = maps.get(l).unwrap_or(&empty);
-                self.scan_level(l, &pyr.levels[l], map, v, params, cut, max_loss)
+                let level = &pyr.levels[l];
+                self.scan_level(l, level, map, counters.get(l), v, params, cut, max_loss)
             })
             .collect();
         let mut cands: Vec<Candidate> = Vec::new();
@@ -899,6 +977,41 @@ mod tests {
     fn iou_of_boxes() {
         assert_eq!(box_iou((0.0, 0.0, 2.0, 2.0), (2.0, 0.0, 2.0, 2.0)), 0.0);
         assert!((box_iou((0.0, 0.0, 2.0, 2.0), (1.0, 0.0, 2.0, 2.0)) - 1.0 / 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn clique_counter_bounds_distinct_segments() {
+        let mut rng = crate::vision::rng::SplitMix64::new(5);
+        for t in 0..300 {
+            let (w, h) = (1 + t % 9, 1 + (t / 9) % 7);
+            let labels = 1 + rng.range_usize(0, 6);
+            let seg: Vec<u32> = (0..w * h)
+                .map(|_| rng.range_usize(0, labels) as u32)
+                .collect();
+            let c = CliqueCounter::new(&seg, w, h);
+            for x0 in 0..w {
+                for x1 in x0 + 1..=w {
+                    for y0 in 0..h {
+                        for y1 in y0 + 1..=h {
+                            let mut seen: Vec<u32> = (y0..y1)
+                                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                                .map(|(x, y)| seg[y * w + x])
+                                .collect();
+                            seen.sort_unstable();
+                            seen.dedup();
+                            let b = c.bound(x0, x1, y0, y1);
+                            assert!(b >= seen.len(), "{seg:?} {w}x{h} [{x0},{x1})x[{y0},{y1})");
+                            assert!(b <= (x1 - x0) * (y1 - y0));
+                        }
+                    }
+                }
+            }
+        }
+        // One segment: exactly one clique; a checkerboard: every cell.
+        let c = CliqueCounter::new(&[3; 12], 4, 3);
+        assert_eq!(c.bound(0, 4, 0, 3), 1);
+        let board: Vec<u32> = (0..12).map(|i| ((i % 4 + i / 4) % 2) as u32).collect();
+        assert_eq!(CliqueCounter::new(&board, 4, 3).bound(1, 4, 0, 3), 9);
     }
 
     #[test]

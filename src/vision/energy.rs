@@ -301,6 +301,14 @@ impl BoxProblem {
     /// `hop-graph.md`, source side = visible). Writes the labelling into `v`
     /// and returns its energy. Assumes [`BoxProblem::validate`] holds.
     pub fn solve(&mut self, graph: &mut Graph, v: &mut Vec<bool>) -> f64 {
+        self.solve_below(graph, v, f64::INFINITY)
+            .unwrap_or(f64::INFINITY)
+    }
+
+    /// Like [`BoxProblem::solve`], but returns `None` without finishing as
+    /// soon as the minimum is known to exceed `limit` (the flow found so far
+    /// plus the constant already does); `v` is then not a labelling.
+    pub fn solve_below(&mut self, graph: &mut Graph, v: &mut Vec<bool>, limit: f64) -> Option<f64> {
         let n = self.len();
         let k = self.w_hop.len() - 1;
         let kf = k as f64;
@@ -356,10 +364,10 @@ impl BoxProblem {
                 }
             }
         }
-        let flow = graph.maxflow();
+        let flow = graph.maxflow_until(limit - constant)?;
         v.clear();
         v.extend((0..n).map(|i| graph.is_source_side(i)));
-        flow + constant
+        Some(flow + constant)
     }
 }
 
