@@ -3,6 +3,7 @@
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
+use sdhop::train::ko8::above_threshold;
 use sdhop::vision::detect::{box_iou, DetectParams, Detector};
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
@@ -85,20 +86,29 @@ fn pruning_returns_exactly_the_unpruned_detections() {
     for s in &scenes {
         let pyr =
             FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
-        for max_detections in [1, 5] {
+        // Low thresholds keep many locations alive, so the early stop of
+        // the min-cut is what prunes there.
+        let t0 = model.meta.detection.threshold;
+        for (threshold, max_detections) in [(t0, 1), (t0, 5), (t0 - 1.0, 5), (t0 - 3.0, 20)] {
             let mut p = DetectParams {
                 max_detections,
+                threshold,
                 ..model.meta.detection
             };
             p.prune = true;
             let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
             p.prune = false;
             let (full, st_f) = detector.detect(&pyr, &p).unwrap();
-            assert_eq!(pruned, full, "max_detections {max_detections}");
+            assert_eq!(
+                pruned, full,
+                "threshold {threshold}, max_detections {max_detections}"
+            );
             assert!(!full.is_empty());
             assert_eq!(st_p.locations, st_f.locations);
             assert_eq!(st_f.min_cuts, st_f.locations);
-            assert!(st_p.min_cuts * 10 < st_p.locations, "{st_p:?}");
+            if threshold == t0 {
+                assert!(st_p.min_cuts * 10 < st_p.locations, "{st_p:?}");
+            }
         }
     }
 }
@@ -230,4 +240,35 @@ fn bad_inputs_give_errors_or_empty_results() {
         .unwrap()
         .detections
         .is_empty());
+}
+
+#[test]
+fn dropping_low_scores_equals_detecting_at_a_higher_threshold() {
+    // What cross-validation relies on to score many thresholds from one run.
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let t0 = model.meta.detection.threshold;
+    for s in &scenes(3) {
+        let at = |threshold: f64| {
+            let opts = DetectOptions {
+                threshold: Some(threshold),
+                max_detections: Some(20),
+                masks: MaskMode::None,
+                ..DetectOptions::default()
+            };
+            let mut r = detect_image(&s.image, &[&model], &opts).unwrap();
+            r.timing_ms = Default::default();
+            r
+        };
+        let low = at(t0 - 2.0);
+        for t in [t0 - 1.0, t0, t0 + 0.5] {
+            let filtered = above_threshold(std::slice::from_ref(&low), t);
+            let direct = at(t);
+            assert_eq!(
+                serde_json::to_value(&filtered[0]).unwrap(),
+                serde_json::to_value(&direct).unwrap(),
+                "threshold {t}"
+            );
+        }
+        assert!(low.detections.len() > at(t0 + 0.5).detections.len());
+    }
 }

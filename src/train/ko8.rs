@@ -206,6 +206,65 @@ pub fn score(data: &Ko8Data, images: &[&Sample], responses: &[DetectResponse]) -
     }
 }
 
+/// The mean figures of responses with every detection scoring below
+/// `threshold` dropped.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ThresholdScore {
+    pub threshold: f64,
+    pub mean: MeanScore,
+}
+
+/// Keeps the detections scoring at least `threshold`. For a threshold at or
+/// above the one detection ran with, this is exactly what detection at that
+/// threshold returns: suppression is greedy by score, so a kept detection
+/// was only ever suppressed by higher-scoring ones, which are kept too.
+pub fn above_threshold(responses: &[DetectResponse], threshold: f64) -> Vec<DetectResponse> {
+    responses
+        .iter()
+        .map(|r| {
+            let mut r = r.clone();
+            r.detections.retain(|d| d.score >= threshold);
+            r
+        })
+        .collect()
+}
+
+/// Scores the same responses at each threshold (see [`above_threshold`]).
+pub fn threshold_sweep(
+    data: &Ko8Data,
+    images: &[&Sample],
+    responses: &[DetectResponse],
+    thresholds: &[f64],
+) -> Vec<ThresholdScore> {
+    use rayon::prelude::*;
+    thresholds
+        .par_iter()
+        .map(|&t| ThresholdScore {
+            threshold: t,
+            mean: score(data, images, &above_threshold(responses, t)).mean,
+        })
+        .collect()
+}
+
+/// What model selection maximises: the mean cross-object AUC, less a tenth
+/// of the mean refined segmentation error.
+pub fn selection_key(m: &MeanScore) -> f64 {
+    m.auc_cross - 0.1 * m.seg_error_refined
+}
+
+/// The highest threshold whose key is within `tolerance` of the best one
+/// (higher thresholds prune more, so detection is faster).
+pub fn choose_threshold(sweep: &[ThresholdScore], tolerance: f64) -> Option<&ThresholdScore> {
+    let best = sweep
+        .iter()
+        .map(|t| selection_key(&t.mean))
+        .fold(f64::NEG_INFINITY, f64::max);
+    sweep
+        .iter()
+        .filter(|t| selection_key(&t.mean) >= best - tolerance)
+        .max_by(|a, b| a.threshold.total_cmp(&b.threshold))
+}
+
 /// Result of a cross-validation.
 pub struct CrossValidation {
     pub evaluation: Evaluation,
