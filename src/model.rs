@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::vision::detect::DetectParams;
-use crate::vision::energy::ViewWeights;
+use crate::vision::energy::{PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use crate::vision::pyramid::PyramidParams;
 use crate::vision::segment::SegmentParams;
@@ -81,6 +81,10 @@ pub struct ModelMeta {
     pub cell_size: usize,
     /// Standard clique size `K` of the higher-order potentials.
     pub hop_k: usize,
+    /// Which neighbour pairs carry the Potts term (absent in older files:
+    /// every 4-connected pair).
+    #[serde(default)]
+    pub pairwise: PairwiseMode,
     pub pyramid: PyramidParams,
     pub segmentation: SegmentParams,
     /// Default detection settings (threshold, NMS, truncation, refinement).
@@ -168,7 +172,10 @@ impl Model {
                     vm.rows, vm.cols
                 )));
             }
-            if (vm.rows, vm.cols) != (w.rows, w.cols) || w.w_hop.len() != m.hop_k + 1 {
+            if (vm.rows, vm.cols) != (w.rows, w.cols)
+                || w.w_hop.len() != m.hop_k + 1
+                || w.pair_mode != m.pairwise
+            {
                 return Err(ModelError::Invalid(format!(
                     "viewpoint {a}: metadata and weights disagree"
                 )));
@@ -288,6 +295,7 @@ impl Model {
                 w_prior,
                 w_trunc: s[0],
                 w_pair: s[1],
+                pair_mode: meta.pairwise,
                 w_hop,
                 bias: s[2],
             });
@@ -340,6 +348,7 @@ mod tests {
             name: "cup".into(),
             cell_size: CELL_SIZE,
             hop_k: 4,
+            pairwise: PairwiseMode::Grid,
             pyramid: PyramidParams::default(),
             segmentation: SegmentParams::default(),
             detection: DetectParams::default(),

@@ -6,7 +6,7 @@
 
 use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
 use crate::vision::detect::DetectParams;
-use crate::vision::energy::ViewWeights;
+use crate::vision::energy::{PairwiseMode, ViewWeights};
 use crate::vision::hog::{hog, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
@@ -375,6 +375,7 @@ pub fn hand_model(
         name: name.to_string(),
         cell_size: CELL_SIZE,
         hop_k: k,
+        pairwise: PairwiseMode::Grid,
         pyramid: PyramidParams::default(),
         segmentation: SegmentParams::default(),
         detection,

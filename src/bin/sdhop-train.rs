@@ -19,6 +19,7 @@ use sdhop::train::ko8::{
 use sdhop::train::loss::LossKind;
 use sdhop::train::{progress_bar, train_model, PyramidCache, TrainParams};
 use sdhop::vision::detect::box_iou;
+use sdhop::vision::energy::PairwiseMode;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
 
@@ -86,7 +87,7 @@ struct TrainSettings {
     /// JSON file with any of the training settings (see `TrainParams` in
     /// the docs: c, k, template_scale, template, pyramid, segmentation,
     /// max_truncation, epsilon, max_passes, max_inner, init_locations,
-    /// positive_share, loss, hop, pairwise, seed, threshold).
+    /// positive_share, loss, hop, pairwise, pair_mode, seed, threshold).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Regularisation constant C.
@@ -137,6 +138,10 @@ struct TrainSettings {
     /// Ablation: no pairwise term.
     #[arg(long)]
     no_pairwise: bool,
+    /// Ablation: pairwise terms only between neighbouring cells along an
+    /// image edge, as Gao et al. 2011 (default: every 4-connected pair).
+    #[arg(long)]
+    edge_pairwise: bool,
     /// Detection threshold saved in the models.
     #[arg(long, allow_negative_numbers = true)]
     threshold: Option<f64>,
@@ -216,6 +221,9 @@ impl TrainSettings {
         }
         p.hop &= !self.no_hop;
         p.pairwise &= !self.no_pairwise;
+        if self.edge_pairwise {
+            p.pair_mode = PairwiseMode::Edges;
+        }
         p.validate().map_err(Failure::input)?;
         if let Some(t) = self.threads {
             rayon::ThreadPoolBuilder::new()

@@ -31,7 +31,7 @@ use thiserror::Error;
 use crate::dataset::{load_image, DatasetError, Sample};
 use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
 use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
-use crate::vision::energy::{joint_feature, joint_feature_len, ViewWeights};
+use crate::vision::energy::{joint_feature, joint_feature_len, PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::rng::SplitMix64;
@@ -101,6 +101,10 @@ pub struct TrainParams {
     pub hop: bool,
     /// Train the pairwise term (false: no pairwise ablation).
     pub pairwise: bool,
+    /// Which neighbour pairs carry the pairwise term: every 4-connected
+    /// pair (SD-HOP) or only pairs along image edges (the Gao et al. 2011
+    /// ablation).
+    pub pair_mode: PairwiseMode,
     pub seed: u64,
     /// Detection threshold saved in the model (score units; the SVM margin
     /// puts positives at >= 1 and negatives at <= -1). The default, -0.5, is
@@ -131,6 +135,7 @@ impl Default for TrainParams {
             loss: LossKind::SdHop,
             hop: true,
             pairwise: true,
+            pair_mode: PairwiseMode::Grid,
             seed: 1,
             threshold: -0.5,
         }
@@ -231,12 +236,13 @@ pub struct Layout {
     /// `(rows, cols)` per viewpoint.
     pub shapes: Vec<(usize, usize)>,
     pub k: usize,
+    pub pair_mode: PairwiseMode,
     offsets: Vec<usize>,
     pub len: usize,
 }
 
 impl Layout {
-    pub fn new(shapes: Vec<(usize, usize)>, k: usize) -> Self {
+    pub fn new(shapes: Vec<(usize, usize)>, k: usize, pair_mode: PairwiseMode) -> Self {
         let mut offsets = Vec::new();
         let mut len = 0;
         for &(r, c) in &shapes {
@@ -246,6 +252,7 @@ impl Layout {
         Self {
             shapes,
             k,
+            pair_mode,
             offsets,
             len,
         }
@@ -320,6 +327,7 @@ impl Layout {
                 let n = rows * cols;
                 let o = self.offsets[v];
                 let mut vw = ViewWeights::zeros(rows, cols, self.k);
+                vw.pair_mode = self.pair_mode;
                 for i in 0..n {
                     for d in 0..HOG_DIM {
                         vw.w_vis[i * HOG_STRIDE + d] = w[o + i * HOG_DIM + d] as f32;
@@ -469,7 +477,7 @@ pub fn train_model(
     let shapes: Vec<(usize, usize)> = (0..n_views)
         .map(|v| template_shape(&positives, v, params))
         .collect::<Result<_, _>>()?;
-    let layout = Layout::new(shapes.clone(), params.k);
+    let layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
     cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
 
     // Ground truth of every positive: the location with the best box IoU.
@@ -651,6 +659,7 @@ pub fn train_model(
         name: label.to_string(),
         cell_size: CELL_SIZE,
         hop_k: params.k,
+        pairwise: params.pair_mode,
         pyramid: params.pyramid,
         segmentation: params.segmentation,
         detection: DetectParams {
@@ -902,7 +911,7 @@ mod tests {
     /// The training parametrisation reproduces `w_hop . theta`.
     #[test]
     fn hop_reparametrisation_preserves_the_energy() {
-        let layout = Layout::new(vec![(1, 1)], 4);
+        let layout = Layout::new(vec![(1, 1)], 4, PairwiseMode::Grid);
         let mut rng = SplitMix64::new(2);
         for _ in 0..100 {
             let mut w = vec![0.0; layout.len];

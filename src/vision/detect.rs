@@ -22,7 +22,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::energy::{BoxProblem, ViewWeights, NO_CLIQUE};
+use super::energy::{
+    edge_direction, BoxProblem, PairwiseMode, ViewWeights, NO_CLIQUE, PAIR_DOWN, PAIR_RIGHT,
+};
 use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
 use super::maxflow::Graph;
@@ -249,6 +251,7 @@ struct Scratch {
     seg_stamp: Vec<u32>,
     seg_local: Vec<u32>,
     generation: u32,
+    edge_dirs: Vec<u8>,
 }
 
 /// A margin that absorbs float round-off between the bound and the energy.
@@ -335,59 +338,177 @@ impl PlanarMap {
     }
 }
 
-/// Exact best-unary sums `sum_i min(F_i, B_i + R_i)` of the boxes whose
-/// top-left cells are `(x0 + k, y)` for `k` in `0..out.len()`.
+/// Scratch of the dense bound: the column chains' states and the sums
+/// along one output row of positions.
+#[derive(Default)]
+struct DenseScratch {
+    c0: Vec<[f32; LANES]>,
+    c1: Vec<[f32; LANES]>,
+    acc: Vec<[f32; LANES]>,
+}
+
+/// One step of a chain's dynamic programme over [`LANES`] positions: the
+/// best energies ending in label 0 and 1 after adding a cell of unaries
+/// `(u0, u1)`.
 #[inline(always)]
-fn dense_row_body(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
+fn chain_step(
+    s0: &mut [f32; LANES],
+    s1: &mut [f32; LANES],
+    u0: &[f32; LANES],
+    u1: &[f32; LANES],
+    pair: f32,
+) {
+    for l in 0..LANES {
+        let n0 = u0[l] + s0[l].min(s1[l] + pair);
+        let n1 = u1[l] + s1[l].min(s0[l] + pair);
+        s0[l] = n0;
+        s1[l] = n1;
+    }
+}
+
+/// Lower bounds on the unary and pairwise energy of the boxes whose
+/// top-left cells are `(x0 + k, y)` for `k` in `0..out.len()`, by the
+/// row-and-column chain decomposition of [`BoxProblem::lower_bound_chains`]:
+/// half of every unary goes to the chain of its row, half to the chain of
+/// its column, each chain keeps its Potts terms and is minimised exactly by
+/// dynamic programming, and the chain minima add up to a lower bound. With
+/// `pair = 0` it is the sum of best unaries `sum_i min(F_i, B_i + R_i)`.
+///
+/// Template rows are the outer loop, so that the feature rows one template
+/// row reads (31 planes of one map row) stay in the L1 cache while every
+/// block of positions and every template column uses them.
+#[inline(always)]
+fn dense_row_body(
+    map: &PlanarMap,
+    w: &ViewWeights,
+    pair: f32,
+    x0: isize,
+    y: isize,
+    out: &mut [f32],
+    s: &mut DenseScratch,
+) {
     let (rows, cols) = (w.rows, w.cols);
-    for (blk, chunk) in out.chunks_mut(LANES).enumerate() {
-        let mut acc = [0.0f32; LANES];
-        for ty in 0..rows {
-            let row = ((y + ty as isize) + map.pad_y as isize) as usize * map.width;
+    let blocks = out.len().div_ceil(LANES);
+    s.c0.clear();
+    s.c0.resize(cols * blocks, [0.0; LANES]);
+    s.c1.clear();
+    s.c1.resize(cols * blocks, [0.0; LANES]);
+    s.acc.clear();
+    s.acc.resize(blocks, [0.0; LANES]);
+    let col_start = (x0 + map.pad_x as isize) as usize;
+    for ty in 0..rows {
+        let row = (y + ty as isize + map.pad_y as isize) as usize * map.width + col_start;
+        for blk in 0..blocks {
+            let mut r0 = [0.0f32; LANES];
+            let mut r1 = [0.0f32; LANES];
             for tx in 0..cols {
                 let i = ty * cols + tx;
-                let base = row + (x0 + (blk * LANES + tx) as isize + map.pad_x as isize) as usize;
                 let wv = &w.w_vis[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
                 let wo = &w.w_occ[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
-                let mut f = [0.0f32; LANES];
-                let mut g = [0.0f32; LANES];
-                for (d, (&a, &b)) in wv.iter().zip(wo).enumerate() {
+                let base = row + blk * LANES + tx;
+                // Two partial sums per filter hide the multiply-add latency.
+                let (mut f0, mut f1) = ([0.0f32; LANES], [0.0f32; LANES]);
+                let (mut g0, mut g1) = ([0.0f32; LANES], [0.0f32; LANES]);
+                let lanes = |d: usize| -> [f32; LANES] {
                     let o = d * map.plane_len + base;
-                    let Ok(v) = <&[f32; LANES]>::try_from(&map.data[o..o + LANES]) else {
-                        continue;
-                    };
+                    map.data
+                        .get(o..o + LANES)
+                        .and_then(|v| <[f32; LANES]>::try_from(v).ok())
+                        .unwrap_or([0.0; LANES])
+                };
+                let mut d = 0;
+                while d + 1 < HOG_DIM {
+                    let (v0, v1) = (lanes(d), lanes(d + 1));
+                    let (a0, a1, b0, b1) = (wv[d], wv[d + 1], wo[d], wo[d + 1]);
                     for l in 0..LANES {
-                        f[l] += a * v[l];
-                        g[l] += b * v[l];
+                        f0[l] += a0 * v0[l];
+                        g0[l] += b0 * v0[l];
+                        f1[l] += a1 * v1[l];
+                        g1[l] += b1 * v1[l];
+                    }
+                    d += 2;
+                }
+                if d < HOG_DIM {
+                    let v0 = lanes(d);
+                    for l in 0..LANES {
+                        f0[l] += wv[d] * v0[l];
+                        g0[l] += wo[d] * v0[l];
                     }
                 }
                 let r = w.w_prior[i];
+                // Half of each unary to the row chain, half to the column.
+                let mut u0 = [0.0f32; LANES];
+                let mut u1 = [0.0f32; LANES];
                 for l in 0..LANES {
-                    acc[l] += f[l].min(g[l] + r);
+                    u1[l] = 0.5 * (f0[l] + f1[l]);
+                    u0[l] = 0.5 * (g0[l] + g1[l] + r);
+                }
+                if tx == 0 {
+                    r0 = u0;
+                    r1 = u1;
+                } else {
+                    chain_step(&mut r0, &mut r1, &u0, &u1, pair);
+                }
+                let c = tx * blocks + blk;
+                if ty == 0 {
+                    s.c0[c] = u0;
+                    s.c1[c] = u1;
+                } else {
+                    let (c0, c1) = (&mut s.c0[c], &mut s.c1[c]);
+                    chain_step(c0, c1, &u0, &u1, pair);
                 }
             }
+            let acc = &mut s.acc[blk];
+            for l in 0..LANES {
+                acc[l] += r0[l].min(r1[l]);
+            }
         }
-        let n = chunk.len();
-        chunk.copy_from_slice(&acc[..n]);
+    }
+    for tx in 0..cols {
+        for blk in 0..blocks {
+            let c = tx * blocks + blk;
+            for l in 0..LANES {
+                s.acc[blk][l] += s.c0[c][l].min(s.c1[c][l]);
+            }
+        }
+    }
+    for (k, v) in out.iter_mut().enumerate() {
+        *v = s.acc[k / LANES][k % LANES];
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn dense_row_avx2(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
-    dense_row_body(map, w, x0, y, out)
+unsafe fn dense_row_avx2(
+    map: &PlanarMap,
+    w: &ViewWeights,
+    pair: f32,
+    x0: isize,
+    y: isize,
+    out: &mut [f32],
+    s: &mut DenseScratch,
+) {
+    dense_row_body(map, w, pair, x0, y, out, s)
 }
 
-fn dense_row(map: &PlanarMap, w: &ViewWeights, x0: isize, y: isize, out: &mut [f32]) {
+fn dense_row(
+    map: &PlanarMap,
+    w: &ViewWeights,
+    pair: f32,
+    x0: isize,
+    y: isize,
+    out: &mut [f32],
+    s: &mut DenseScratch,
+) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
             // SAFETY: the features were detected at run time.
-            return unsafe { dense_row_avx2(map, w, x0, y, out) };
+            return unsafe { dense_row_avx2(map, w, pair, x0, y, out, s) };
         }
     }
-    dense_row_body(map, w, x0, y, out)
+    dense_row_body(map, w, pair, x0, y, out, s)
 }
 
 /// Range of top-left positions along one axis whose box of `len` cells has
@@ -460,10 +581,17 @@ impl<'a> Detector<'a> {
         let mut out = Vec::new();
         let mut count = 0;
         let mut sums = vec![0.0f32; (x_hi - x_lo + 1) as usize];
+        let mut scratch = DenseScratch::default();
+        // The chain bound holds for the Potts terms of every pair; with
+        // pairs along edges only, a pair may carry nothing, so it uses none.
+        let pair = match view.w.pair_mode {
+            PairwiseMode::Grid => view.w.w_pair,
+            PairwiseMode::Edges => 0.0,
+        };
         for y in y_lo..=y_hi {
             let oy = overlap(y, rows, mh);
             if params.prune {
-                dense_row(map, view.w, x_lo, y, &mut sums);
+                dense_row(map, view.w, pair, x_lo, y, &mut sums, &mut scratch);
             }
             for (k, x) in (x_lo..=x_hi).enumerate() {
                 let inside = overlap(x, cols, mw) * oy;
@@ -523,7 +651,7 @@ impl<'a> Detector<'a> {
         }
         let p = &mut s.problem;
         if prune {
-            let lb = p.lower_bound();
+            let lb = p.lower_bound_chains();
             if lb - margin(lb) > cut {
                 return None;
             }
@@ -622,6 +750,15 @@ impl<'a> Detector<'a> {
         }
         let p = &mut s.problem;
         p.pairwise = f64::from(w.w_pair);
+        let edges = w.pair_mode == PairwiseMode::Edges;
+        if edges {
+            p.pairs.clear();
+            p.pairs.resize(rows * cols, 0);
+            s.edge_dirs.clear();
+            s.edge_dirs.resize(rows * cols, 0);
+        } else {
+            p.pairs.clear();
+        }
         let mut n_cliques = 0u32;
         let mut truncated = 0usize;
         for ty in 0..rows {
@@ -641,6 +778,9 @@ impl<'a> Detector<'a> {
                 }
                 let (cx, cy) = (cx as usize, cy as usize);
                 let phi = level.hog.cell_padded(cx, cy);
+                if edges {
+                    s.edge_dirs[i] = edge_direction(phi);
+                }
                 if let Some(f) = features.as_deref_mut() {
                     let mut c = [0.0f32; HOG_DIM];
                     c.copy_from_slice(&phi[..HOG_DIM]);
@@ -661,6 +801,19 @@ impl<'a> Detector<'a> {
         }
         p.n_cliques = n_cliques as usize;
         p.constant = f64::from(w.w_trunc) * truncated as f64 + f64::from(w.bias);
+        if edges {
+            // A pair runs along an edge when both cells lie on an edge in
+            // the pair's direction (cells outside the image lie on none).
+            for i in 0..rows * cols {
+                let d = s.edge_dirs[i];
+                if i % cols + 1 < cols && d == 1 && s.edge_dirs[i + 1] == 1 {
+                    p.pairs[i] |= PAIR_RIGHT;
+                }
+                if i + cols < rows * cols && d == 2 && s.edge_dirs[i + cols] == 2 {
+                    p.pairs[i] |= PAIR_DOWN;
+                }
+            }
+        }
         truncated
     }
 
