@@ -61,7 +61,7 @@ fn training_learns_to_detect_and_segment_held_out_scenes() {
     let params = TrainParams {
         template_scale: 1.0,
         max_passes: 6,
-        exact_passes: 2,
+        mining_passes: 3,
         init_locations: 20,
         ..TrainParams::default()
     };

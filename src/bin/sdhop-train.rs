@@ -87,7 +87,8 @@ struct TrainSettings {
     /// JSON file with any of the training settings (see `TrainParams` in
     /// the docs: c, k, template_scale, template, pyramid, segmentation,
     /// max_truncation, epsilon, max_passes, max_inner, init_locations,
-    /// positive_share, loss, hop, pairwise, pair_mode, seed, threshold).
+    /// mining_passes, mining_budget, cache_size, positive_share, loss, hop,
+    /// pairwise, pair_mode, seed, threshold).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Regularisation constant C.
@@ -123,9 +124,13 @@ struct TrainSettings {
     /// Min-cuts per image in hard-example mining passes.
     #[arg(long)]
     mining_budget: Option<usize>,
-    /// Final full searches without a min-cut budget (exact).
+    /// First full searches that mine hard examples with a min-cut budget
+    /// instead of being exact (default 0: every full search is exact).
     #[arg(long)]
-    exact_passes: Option<usize>,
+    mining_passes: Option<usize>,
+    /// Most locations cached per image between full searches.
+    #[arg(long)]
+    cache_size: Option<usize>,
     /// Random seed (initial locations).
     #[arg(long)]
     seed: Option<u64>,
@@ -207,8 +212,11 @@ impl TrainSettings {
         if let Some(v) = self.mining_budget {
             p.mining_budget = v;
         }
-        if let Some(v) = self.exact_passes {
-            p.exact_passes = v;
+        if let Some(v) = self.mining_passes {
+            p.mining_passes = v;
+        }
+        if let Some(v) = self.cache_size {
+            p.cache_size = v;
         }
         if let Some(v) = self.seed {
             p.seed = v;

@@ -83,15 +83,19 @@ pub struct TrainParams {
     pub epsilon: f64,
     /// Full searches over every location of every image, at most.
     pub max_passes: usize,
-    /// Cutting-plane iterations over the cached locations per full search.
+    /// Cutting-plane iterations over the cached locations per full search,
+    /// at most (fewer when the cache stops yielding violated constraints).
     pub max_inner: usize,
     /// Random locations per image that seed the cache (initialisation).
     pub init_locations: usize,
-    /// Min-cuts per image of the hard-example mining passes (in order of
-    /// the exact bound); the last `exact_passes` passes have no budget.
+    /// The first `mining_passes` full searches are hard-example mining
+    /// with at most `mining_budget` min-cuts per image (in order of the
+    /// exact bound), not exact; the others are exact. Exact searches are
+    /// cheap enough with the chain bound that the default mines none.
+    pub mining_passes: usize,
     pub mining_budget: usize,
-    pub exact_passes: usize,
-    /// Most locations kept in an image's cache (the oldest leave first).
+    /// Most locations kept in an image's cache (the least recently most
+    /// violated leave first).
     pub cache_size: usize,
     /// Share of the objective carried by the positive images (the negatives
     /// carry the rest).
@@ -126,11 +130,11 @@ impl Default for TrainParams {
             max_truncation: 0.5,
             epsilon: 0.01,
             max_passes: 5,
-            max_inner: 8,
+            max_inner: 30,
             init_locations: 30,
+            mining_passes: 0,
             mining_budget: 300,
-            exact_passes: 0,
-            cache_size: 40,
+            cache_size: 12,
             positive_share: 0.5,
             loss: LossKind::SdHop,
             hop: true,
@@ -557,7 +561,7 @@ pub fn train_model(
             }
         }
         if let Some(t) = &truth {
-            seeds.push(t.location);
+            seeds.insert(0, t.location);
         }
         let weight = if truth.is_some() { pos_w } else { neg_w };
         examples.push(Example {
@@ -620,7 +624,7 @@ pub fn train_model(
         let t = Instant::now();
         // Budgeted searches mine hard examples cheaply while the weights
         // still move; the last passes are exact and decide convergence.
-        let exact = pass + params.exact_passes >= params.max_passes || approx_done;
+        let exact = pass >= params.mining_passes || approx_done;
         let budget = (!exact).then_some(params.mining_budget);
         let round = search(&det, &layout, &mut examples, params, true, budget)?;
         report.full_seconds += t.elapsed().as_secs_f64();
@@ -833,25 +837,26 @@ fn search(
         b += bi;
         loss += ex.weight * li;
         wsum += ex.weight;
-        if full {
-            for l in loc.into_iter().chain(extra) {
-                if !ex.cache.contains(&l) {
-                    ex.cache.push(l);
-                }
+        // The cache is kept in order of recent use: the locations found now
+        // first (the most violated one at the very front, so the next
+        // search starts from a tight cut-off), the least recently useful
+        // last, and those leave first (never the ground truth).
+        for l in extra.into_iter().rev().chain(loc) {
+            if let Some(pos) = ex.cache.iter().position(|c| *c == l) {
+                ex.cache.remove(pos);
             }
-            if ex.cache.len() > params.cache_size {
-                // Keep the ground truth (last seed) and the newest.
-                let drop = ex.cache.len() - params.cache_size;
-                let keep_truth = ex.truth.as_ref().map(|t| t.location);
-                let mut dropped = 0;
-                ex.cache.retain(|l| {
-                    if dropped < drop && Some(*l) != keep_truth {
-                        dropped += 1;
-                        false
-                    } else {
-                        true
-                    }
-                });
+            ex.cache.insert(0, l);
+        }
+        if ex.cache.len() > params.cache_size {
+            let keep_truth = ex.truth.as_ref().map(|t| t.location);
+            let mut excess = ex.cache.len() - params.cache_size;
+            let mut i = ex.cache.len();
+            while excess > 0 && i > 0 {
+                i -= 1;
+                if Some(ex.cache[i]) != keep_truth {
+                    ex.cache.remove(i);
+                    excess -= 1;
+                }
             }
         }
     }
