@@ -1,21 +1,32 @@
-# Builds the sdhop command-line tool (the HTTP server is a later issue).
-# Same build as .ci/run: cargo, release profile.
+# sdhop-serve: the SD-HOP inference service, with the shipped models.
+# The build is the one .ci/run does: cargo, release profile, Cargo.lock.
 FROM rust:1-slim-bookworm AS build
 WORKDIR /src
-# Cache dependencies: build them against a stub crate first.
+# Dependency layer, cached until Cargo.toml or Cargo.lock change: build the
+# dependencies against stub targets.
 COPY Cargo.toml Cargo.lock ./
-RUN mkdir -p src/bin benches && echo "" > src/lib.rs \
- && echo "fn main() {}" > src/bin/sdhop-train.rs && echo "fn main() {}" > benches/detect.rs \
- && cargo build --release --locked && rm -rf src benches
+RUN mkdir -p src/bin benches \
+ && touch src/lib.rs \
+ && echo "fn main() {}" > src/bin/sdhop-train.rs \
+ && echo "fn main() {}" > src/bin/sdhop-serve.rs \
+ && echo "fn main() {}" > benches/detect.rs \
+ && cargo build --release --locked --bins \
+ && rm -rf src benches
 COPY src ./src
 COPY benches ./benches
-RUN touch src/lib.rs && cargo build --release --locked --bin sdhop-train
+COPY kernels ./kernels
+COPY openapi.yaml ./
+RUN touch src/lib.rs src/bin/*.rs && cargo build --release --locked --bins
 
 FROM debian:bookworm-slim
-RUN useradd --system --uid 10001 --create-home sdhop
-COPY --from=build /src/target/release/sdhop-train /usr/local/bin/sdhop-train
+RUN useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin sdhop
+COPY --from=build /src/target/release/sdhop-serve /src/target/release/sdhop-train /usr/local/bin/
 COPY models /opt/sdhop/models
-USER sdhop
-WORKDIR /home/sdhop
-ENTRYPOINT ["sdhop-train"]
-CMD ["demo", "--out", "/home/sdhop/demo"]
+USER 10001
+ENV SDHOP_ADDR=0.0.0.0:8080 \
+    SDHOP_MODELS_DIR=/opt/sdhop/models \
+    SDHOP_LOG_FORMAT=json
+EXPOSE 8080
+HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 \
+  CMD ["sdhop-serve", "--check-ready"]
+ENTRYPOINT ["sdhop-serve"]

@@ -7,8 +7,11 @@
 //! the detection JSON; [`synth`] generates synthetic scenes with exact
 //! ground truth.
 
+pub mod backend;
 pub mod dataset;
 pub mod eval;
+pub mod http;
+pub mod infer;
 pub mod model;
 pub mod pipeline;
 pub mod synth;

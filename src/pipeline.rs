@@ -10,7 +10,8 @@ use crate::model::Model;
 use crate::vision::detect::{detection_masks, DetectStats, Detector};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{Mask, Rle};
-use crate::vision::pyramid::FeaturePyramid;
+use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
+use crate::vision::segment::SegmentParams;
 use crate::vision::VisionError;
 
 /// Default upper limit on the pixels of an input image.
@@ -108,22 +109,41 @@ pub struct DetectResponse {
     pub timing_ms: Timing,
 }
 
+/// The distinct feature settings (pyramid and over-segmentation) of
+/// `models`, in the order the models first use them: one pyramid per
+/// setting serves every model.
+pub fn feature_settings(models: &[&Model]) -> Vec<(PyramidParams, SegmentParams)> {
+    let mut out: Vec<(PyramidParams, SegmentParams)> = Vec::new();
+    for m in models {
+        let s = (m.meta.pyramid, m.meta.segmentation);
+        if !out.contains(&s) {
+            out.push(s);
+        }
+    }
+    out
+}
+
+/// Checks an image's size against the pixel limit.
+pub fn check_pixels(width: usize, height: usize, max_pixels: usize) -> Result<(), VisionError> {
+    if width.saturating_mul(height) > max_pixels {
+        return Err(VisionError::ImageTooLarge { width, height });
+    }
+    Ok(())
+}
+
 /// Runs every model on one image.
 pub fn detect_image(
     img: &ColorImage,
     models: &[&Model],
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
-    let (w, h) = (img.width(), img.height());
-    if w.saturating_mul(h) > opts.max_pixels {
-        return Err(VisionError::ImageTooLarge {
-            width: w,
-            height: h,
-        });
-    }
-    detect_with(w, h, models, opts, |m| {
-        FeaturePyramid::build(img, &m.meta.pyramid, &m.meta.segmentation)
-    })
+    check_pixels(img.width(), img.height(), opts.max_pixels)?;
+    let pyramids = feature_settings(models)
+        .iter()
+        .map(|(p, s)| FeaturePyramid::build(img, p, s))
+        .collect::<Result<Vec<_>, _>>()?;
+    let refs: Vec<&FeaturePyramid> = pyramids.iter().collect();
+    detect_prebuilt(&refs, models, opts)
 }
 
 /// Runs every model on an image whose pyramid is already built; models whose
@@ -133,70 +153,57 @@ pub fn detect_pyramid(
     models: &[&Model],
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
-    for m in models {
-        if pyr.params != m.meta.pyramid || pyr.seg_params != m.meta.segmentation {
-            return Err(VisionError::InvalidParameter(format!(
-                "model {} needs other pyramid settings than the image's",
-                m.meta.name
-            )));
-        }
-    }
-    let mut timing = Timing::default();
-    let mut stats = DetectStats::default();
-    let mut detections = Vec::new();
-    let start = Instant::now();
-    for model in models {
-        run_model(pyr, model, opts, &mut timing, &mut stats, &mut detections)?;
-    }
-    Ok(finish(
-        pyr.image_width,
-        pyr.image_height,
-        detections,
-        timing,
-        stats,
-        opts,
-        start,
-    ))
+    detect_prebuilt(&[pyr], models, opts)
 }
 
-fn detect_with(
-    w: usize,
-    h: usize,
+/// Runs every model on pyramids of one image built elsewhere (by a compute
+/// backend): each model uses the pyramid with its feature settings, and a
+/// model without one is refused. The timings include the pyramids' own
+/// (the total adds the build times of the pyramids used).
+pub fn detect_prebuilt(
+    pyramids: &[&FeaturePyramid],
     models: &[&Model],
     opts: &DetectOptions,
-    build: impl Fn(&Model) -> Result<FeaturePyramid, VisionError>,
 ) -> Result<DetectResponse, VisionError> {
+    let Some(first) = pyramids.first() else {
+        return Err(VisionError::InvalidParameter("no pyramid".into()));
+    };
+    let (w, h) = (first.image_width, first.image_height);
     let start = Instant::now();
     let mut timing = Timing::default();
     let mut stats = DetectStats::default();
     let mut detections: Vec<DetectionJson> = Vec::new();
-    let mut pyramids: Vec<FeaturePyramid> = Vec::new();
+    let mut used = vec![false; pyramids.len()];
+    let mut built_ms = 0.0;
     for model in models {
         let m = &model.meta;
-        let idx = match pyramids
+        let idx = pyramids
             .iter()
             .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
-        {
-            Some(i) => i,
-            None => {
-                let pyr = build(model)?;
-                timing.features += pyr.timing.features_ms;
-                timing.segmentation += pyr.timing.segmentation_ms;
-                timing.cell_segments += pyr.timing.cell_segments_ms;
-                pyramids.push(pyr);
-                pyramids.len() - 1
-            }
-        };
-        run_model(
-            &pyramids[idx],
-            model,
-            opts,
-            &mut timing,
-            &mut stats,
-            &mut detections,
-        )?;
+            .ok_or_else(|| {
+                VisionError::InvalidParameter(format!(
+                    "model {} needs other pyramid settings than the image's",
+                    m.name
+                ))
+            })?;
+        let pyr = pyramids[idx];
+        if (pyr.image_width, pyr.image_height) != (w, h) {
+            return Err(VisionError::InvalidParameter(
+                "pyramids of different images".into(),
+            ));
+        }
+        if !used[idx] {
+            used[idx] = true;
+            timing.features += pyr.timing.features_ms;
+            timing.segmentation += pyr.timing.segmentation_ms;
+            timing.cell_segments += pyr.timing.cell_segments_ms;
+            built_ms += pyr.timing.total_ms;
+        }
+        run_model(pyr, model, opts, &mut timing, &mut stats, &mut detections)?;
     }
-    Ok(finish(w, h, detections, timing, stats, opts, start))
+    let mut resp = finish(w, h, detections, timing, stats, opts, start);
+    resp.timing_ms.total += built_ms;
+    Ok(resp)
 }
 
 /// One model's scan and masks, appended to `detections`.

@@ -90,6 +90,9 @@ pub struct PyramidTiming {
     pub features_ms: f64,
     pub segmentation_ms: f64,
     pub cell_segments_ms: f64,
+    /// Wall-clock time of the whole build (features and segmentation run
+    /// concurrently).
+    pub total_ms: f64,
 }
 
 /// HOG pyramid and over-segmentation of one image.
@@ -118,6 +121,7 @@ impl FeaturePyramid {
     ) -> Result<Self, VisionError> {
         params.validate()?;
         seg.validate()?;
+        let start = Instant::now();
         let (w, h) = (img.width(), img.height());
         let (segmentation, hogs) = rayon::join(
             || {
@@ -167,6 +171,7 @@ impl FeaturePyramid {
                 features_ms,
                 segmentation_ms,
                 cell_segments_ms: ms(t),
+                total_ms: ms(start),
             },
             params: *params,
             seg_params: *seg,

@@ -1,0 +1,226 @@
+//! `sdhop-serve`: the SD-HOP HTTP inference service. Starts with no
+//! arguments on a fresh clone: loads every model in `models/` and listens on
+//! 127.0.0.1:8080. Every setting is a flag and an environment variable.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+
+use clap::{Parser, ValueEnum};
+use prometheus::Registry;
+use sdhop::backend::{Backend, CpuBackend};
+use sdhop::http::image::ImageLimits;
+use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
+use sdhop::infer::{Infer, InferConfig, InferMetrics};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum LogFormat {
+    Text,
+    Json,
+}
+
+/// SD-HOP occlusion-aware detection over HTTP (see openapi.yaml).
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// Address to listen on.
+    #[arg(long, env = "SDHOP_ADDR", default_value = "127.0.0.1:8080")]
+    addr: SocketAddr,
+    /// Folder of weights files (*.safetensors); every one is loaded.
+    #[arg(long, env = "SDHOP_MODELS_DIR", default_value = "models")]
+    models_dir: PathBuf,
+    /// Requests waiting at most; more are answered 503 with Retry-After.
+    #[arg(long, env = "SDHOP_QUEUE_SIZE", default_value_t = 32)]
+    queue_size: usize,
+    /// Requests computed together at most.
+    #[arg(long, env = "SDHOP_MAX_BATCH", default_value_t = 4)]
+    max_batch: usize,
+    /// How long the worker waits to fill a batch, in milliseconds.
+    #[arg(long, env = "SDHOP_MAX_BATCH_DELAY_MS", default_value_t = 2)]
+    max_batch_delay_ms: u64,
+    /// Deadline of a request without `timeout_ms`, in milliseconds.
+    #[arg(long, env = "SDHOP_TIMEOUT_MS", default_value_t = 30_000)]
+    timeout_ms: u64,
+    /// Largest `timeout_ms` a request may ask for.
+    #[arg(long, env = "SDHOP_MAX_TIMEOUT_MS", default_value_t = 300_000)]
+    max_timeout_ms: u64,
+    /// Largest request body of /detect, in bytes.
+    #[arg(long, env = "SDHOP_MAX_BODY_BYTES", default_value_t = 20 << 20)]
+    max_body_bytes: usize,
+    /// Largest image, in pixels (checked from the header, before decoding).
+    #[arg(long, env = "SDHOP_MAX_PIXELS", default_value_t = 16_000_000)]
+    max_pixels: usize,
+    /// Longest image side, in pixels.
+    #[arg(long, env = "SDHOP_MAX_SIDE", default_value_t = 16_384)]
+    max_side: u32,
+    /// Largest `max_detections` a request may ask for.
+    #[arg(long, env = "SDHOP_MAX_DETECTIONS", default_value_t = 100)]
+    max_detections: usize,
+    /// Threads of the async runtime (HTTP, decoding hand-off).
+    #[arg(long, env = "SDHOP_HTTP_THREADS", default_value_t = 2)]
+    http_threads: usize,
+    /// Threads of the compute pool (0: one per core).
+    #[arg(long, env = "SDHOP_COMPUTE_THREADS", default_value_t = 0)]
+    compute_threads: usize,
+    /// Seconds to finish requests in flight after SIGTERM.
+    #[arg(long, env = "SDHOP_GRACE_SECONDS", default_value_t = 30)]
+    grace_seconds: u64,
+    /// Log format.
+    #[arg(long, env = "SDHOP_LOG_FORMAT", value_enum, default_value = "text")]
+    log_format: LogFormat,
+    /// Do not serve: ask the server at --addr whether it is ready and exit
+    /// 0 if so, 1 if not (a container health check needing no curl).
+    #[arg(long)]
+    check_ready: bool,
+}
+
+/// `GET /health/ready` on the server at `addr` (an unspecified address
+/// means this host); true on a 200.
+fn check_ready(addr: SocketAddr) -> bool {
+    use std::io::{Read, Write};
+    let mut target = addr;
+    if target.ip().is_unspecified() {
+        target.set_ip(std::net::Ipv4Addr::LOCALHOST.into());
+    }
+    let timeout = Duration::from_secs(3);
+    let Ok(mut stream) = std::net::TcpStream::connect_timeout(&target, timeout) else {
+        return false;
+    };
+    let _ = stream.set_read_timeout(Some(timeout));
+    let request = "GET /health/ready HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n";
+    if stream.write_all(request.as_bytes()).is_err() {
+        return false;
+    }
+    let mut head = [0u8; 16];
+    let n = stream.read(&mut head).unwrap_or(0);
+    head[..n].starts_with(b"HTTP/1.1 200")
+}
+
+fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_env("SDHOP_LOG")
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_writer(std::io::stderr);
+    match format {
+        LogFormat::Text => builder.init(),
+        LogFormat::Json => builder.json().flatten_event(true).init(),
+    }
+}
+
+/// Resolves on SIGTERM or Ctrl-C.
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    if args.check_ready {
+        return if check_ready(args.addr) {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        };
+    }
+    init_logging(args.log_format);
+    match run(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: Args) -> Result<(), String> {
+    if args.compute_threads > 0 {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(args.compute_threads)
+            .build_global()
+            .map_err(|e| e.to_string())?;
+    }
+    let models = load_models(&args.models_dir).map_err(|e| e.to_string())?;
+    let registry = Registry::new();
+    let backend: Box<dyn Backend> = Box::new(CpuBackend);
+    let infer_config = InferConfig {
+        queue_size: args.queue_size,
+        max_batch: args.max_batch,
+        max_batch_delay: Duration::from_millis(args.max_batch_delay_ms),
+    };
+    let metrics = InferMetrics::new(&registry).map_err(|e| e.to_string())?;
+    let infer = Infer::start(backend, infer_config, metrics).map_err(|e| e.to_string())?;
+    let config = HttpConfig {
+        max_body_bytes: args.max_body_bytes,
+        image: ImageLimits {
+            max_pixels: args.max_pixels,
+            max_side: args.max_side,
+        },
+        default_timeout: Duration::from_millis(args.timeout_ms),
+        max_timeout: Duration::from_millis(args.max_timeout_ms.max(args.timeout_ms)),
+        max_detections: args.max_detections,
+    };
+    let names: Vec<&str> = models.iter().map(|m| m.model.meta.name.as_str()).collect();
+    tracing::info!(
+        models = ?names,
+        backend = %infer.backend_info().kind,
+        device = %infer.backend_info().device,
+        "loaded {} models from {}",
+        models.len(),
+        args.models_dir.display()
+    );
+    let state = AppState::new(infer, models, config, registry).map_err(|e| e.to_string())?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(args.http_threads.max(1))
+        .enable_all()
+        .build()
+        .map_err(|e| e.to_string())?;
+    runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(args.addr)
+            .await
+            .map_err(|e| format!("cannot listen on {}: {e}", args.addr))?;
+        let addr = listener.local_addr().map_err(|e| e.to_string())?;
+        // The first line on stdout, for scripts and tests that pick port 0.
+        println!("listening on {addr}");
+        tracing::info!("listening on {addr}");
+        let warm = Arc::clone(&state);
+        tokio::spawn(async move {
+            let t = std::time::Instant::now();
+            match warm_up(&warm).await {
+                Ok(()) => {
+                    tracing::info!("ready ({:.0} ms warm-up)", t.elapsed().as_secs_f64() * 1e3)
+                }
+                Err(e) => tracing::error!("warm-up failed, staying not ready: {e}"),
+            }
+        });
+        let grace = Duration::from_secs(args.grace_seconds);
+        let clean = serve(listener, state, shutdown_signal(), grace)
+            .await
+            .map_err(|e| e.to_string())?;
+        if clean {
+            tracing::info!("stopped");
+        } else {
+            tracing::warn!("stopped after the grace period with work unfinished");
+        }
+        Ok(())
+    })
+}

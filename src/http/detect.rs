@@ -1,0 +1,392 @@
+//! `POST /detect`: the image as the body (`image/jpeg`, `image/png`) or as
+//! the `image` part of a `multipart/form-data` body; options in the query.
+//! Answers the detection JSON, or with `format=png` (or `Accept:
+//! image/png`) an 8-bit label map with the detections in `X-Detections`.
+
+use std::io::Cursor;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+
+use super::error::ApiError;
+use super::image::{decode, IMAGE_TYPES};
+use super::state::AppState;
+use crate::infer::DetectTask;
+use crate::model::Model;
+use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, MaskMode};
+use crate::vision::mask::Mask;
+
+/// Response formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Json,
+    Png,
+}
+
+/// The query options of `POST /detect`, checked.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DetectQuery {
+    /// Model names; empty means every loaded model.
+    pub models: Vec<String>,
+    pub threshold: Option<f64>,
+    pub max_detections: Option<usize>,
+    pub masks: MaskMode,
+    pub format: Option<Format>,
+    pub timeout: Option<Duration>,
+}
+
+impl DetectQuery {
+    /// Parses the raw query; `model` may repeat and holds comma-separated
+    /// names. Unknown or malformed parameters are errors.
+    pub fn parse(
+        raw: Option<&str>,
+        max_detections: usize,
+        max_timeout: Duration,
+    ) -> Result<Self, ApiError> {
+        let mut q = DetectQuery {
+            models: Vec::new(),
+            threshold: None,
+            max_detections: None,
+            masks: MaskMode::Refined,
+            format: None,
+            timeout: None,
+        };
+        let bad = |k: &str, v: &str, why: &str| {
+            ApiError::BadRequest(format!("query parameter {k}={v:?}: {why}"))
+        };
+        for (k, v) in form_urlencoded::parse(raw.unwrap_or("").as_bytes()) {
+            match k.as_ref() {
+                "model" => {
+                    for name in v.split(',').map(str::trim) {
+                        if name.is_empty() {
+                            return Err(bad(&k, &v, "empty model name"));
+                        }
+                        if !q.models.iter().any(|m| m == name) {
+                            q.models.push(name.to_string());
+                        }
+                    }
+                }
+                "threshold" => {
+                    let t: f64 = v.parse().map_err(|_| bad(&k, &v, "not a number"))?;
+                    if !t.is_finite() {
+                        return Err(bad(&k, &v, "must be finite"));
+                    }
+                    q.threshold = Some(t);
+                }
+                "max_detections" => {
+                    let n: usize = v
+                        .parse()
+                        .map_err(|_| bad(&k, &v, "not a non-negative integer"))?;
+                    if n == 0 || n > max_detections {
+                        return Err(bad(&k, &v, &format!("must be in 1..={max_detections}")));
+                    }
+                    q.max_detections = Some(n);
+                }
+                "masks" => {
+                    q.masks = match v.as_ref() {
+                        "refined" => MaskMode::Refined,
+                        "raw" => MaskMode::Raw,
+                        "both" => MaskMode::Both,
+                        "none" => MaskMode::None,
+                        _ => return Err(bad(&k, &v, "expected refined, raw, both or none")),
+                    }
+                }
+                "format" => {
+                    q.format = Some(match v.as_ref() {
+                        "json" => Format::Json,
+                        "png" => Format::Png,
+                        _ => return Err(bad(&k, &v, "expected json or png")),
+                    })
+                }
+                "timeout_ms" => {
+                    let ms: u64 = v
+                        .parse()
+                        .map_err(|_| bad(&k, &v, "not a non-negative integer"))?;
+                    let limit = max_timeout.as_millis() as u64;
+                    if ms == 0 || ms > limit {
+                        return Err(bad(&k, &v, &format!("must be in 1..={limit}")));
+                    }
+                    q.timeout = Some(Duration::from_millis(ms));
+                }
+                _ => return Err(bad(&k, &v, "unknown parameter")),
+            }
+        }
+        Ok(q)
+    }
+}
+
+/// The models a request names, or all of them.
+fn select_models(state: &AppState, names: &[String]) -> Result<Vec<Arc<Model>>, ApiError> {
+    if names.is_empty() {
+        return Ok(state.models.iter().map(|m| Arc::clone(&m.model)).collect());
+    }
+    names
+        .iter()
+        .map(|n| {
+            state
+                .model(n)
+                .map(|m| Arc::clone(&m.model))
+                .ok_or_else(|| ApiError::UnknownModel(n.clone()))
+        })
+        .collect()
+}
+
+/// The media type of a request, without parameters, lower case.
+fn media_type(headers: &HeaderMap) -> Option<String> {
+    let v = headers.get(header::CONTENT_TYPE)?.to_str().ok()?;
+    Some(v.split(';').next()?.trim().to_ascii_lowercase())
+}
+
+/// Whether the client asked for a PNG by its `Accept` header.
+fn accepts_png(headers: &HeaderMap) -> bool {
+    headers
+        .get(header::ACCEPT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| {
+            v.split(',')
+                .any(|t| t.split(';').next().is_some_and(|t| t.trim() == "image/png"))
+        })
+}
+
+/// The image bytes of a request, within the body limit.
+async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
+    let too_large = || ApiError::PayloadTooLarge(format!("the body exceeds {limit} bytes"));
+    match media_type(req.headers()).as_deref() {
+        Some(t) if IMAGE_TYPES.contains(&t) => {
+            let body: Body = req.into_body();
+            let bytes = axum::body::to_bytes(body, limit).await.map_err(|e| {
+                if is_length_limit(&e) {
+                    too_large()
+                } else {
+                    ApiError::BadRequest(format!("cannot read the body: {e}"))
+                }
+            })?;
+            Ok(bytes.to_vec())
+        }
+        Some("multipart/form-data") => {
+            let mut mp = Multipart::from_request(req, &())
+                .await
+                .map_err(|e| ApiError::BadRequest(e.body_text()))?;
+            loop {
+                let field = mp.next_field().await.map_err(|e| {
+                    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+                        too_large()
+                    } else {
+                        ApiError::BadRequest(e.body_text())
+                    }
+                })?;
+                let Some(field) = field else {
+                    return Err(ApiError::BadRequest(
+                        "the multipart body has no `image` part".into(),
+                    ));
+                };
+                if field.name() == Some("image") {
+                    let bytes = field.bytes().await.map_err(|e| {
+                        if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+                            too_large()
+                        } else {
+                            ApiError::BadRequest(e.body_text())
+                        }
+                    })?;
+                    return Ok(bytes.to_vec());
+                }
+            }
+        }
+        other => Err(ApiError::UnsupportedMediaType(format!(
+            "send the image as image/jpeg, image/png or multipart/form-data, not {}",
+            other.unwrap_or("a body without Content-Type")
+        ))),
+    }
+}
+
+/// Whether a body error is the length limit.
+fn is_length_limit(e: &axum::Error) -> bool {
+    let mut src: Option<&(dyn std::error::Error + 'static)> = Some(e);
+    while let Some(s) = src {
+        if s.is::<http_body_util::LengthLimitError>() {
+            return true;
+        }
+        src = s.source();
+    }
+    false
+}
+
+/// `POST /detect`.
+pub async fn detect(
+    State(state): State<Arc<AppState>>,
+    RawQuery(raw): RawQuery,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let cfg = state.config;
+    let query = DetectQuery::parse(raw.as_deref(), cfg.max_detections, cfg.max_timeout)?;
+    let deadline = Instant::now() + query.timeout.unwrap_or(cfg.default_timeout);
+    let models = select_models(&state, &query.models)?;
+    // Admission before reading or decoding anything: an overload costs no
+    // work and no memory beyond the queue's.
+    let permit = state.infer.admit()?;
+    let format = query.format.unwrap_or(if accepts_png(req.headers()) {
+        Format::Png
+    } else {
+        Format::Json
+    });
+    let bytes = image_bytes(req, cfg.max_body_bytes).await?;
+    let limits = cfg.image;
+    let image = tokio::task::spawn_blocking(move || decode(&bytes, &limits))
+        .await
+        .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
+    // A label map needs masks: the raw ones when asked for, else refined.
+    let masks = match (format, query.masks) {
+        (Format::Png, MaskMode::None | MaskMode::Both) => MaskMode::Refined,
+        (_, m) => m,
+    };
+    let task = DetectTask {
+        image: Arc::new(image),
+        models,
+        opts: DetectOptions {
+            threshold: query.threshold,
+            max_detections: query.max_detections,
+            masks,
+            prune: true,
+            max_pixels: limits.max_pixels,
+        },
+    };
+    let resp = state.infer.detect(permit, task, deadline).await?;
+    match format {
+        Format::Json => Ok(Json(resp).into_response()),
+        Format::Png => label_map_response(&resp),
+    }
+}
+
+/// One detection in the `X-Detections` header of a PNG answer.
+#[derive(Serialize)]
+struct HeaderDetection<'a> {
+    label: &'a str,
+    model: &'a str,
+    score: f64,
+    #[serde(rename = "box")]
+    bbox: BoxJson,
+}
+
+/// An 8-bit label map the size of the image: 0 is background, `k` the
+/// visible pixels of the `k`-th detection (best first; a pixel keeps the
+/// best detection's label); detections past 255 are left out of the map.
+pub fn label_map(resp: &DetectResponse) -> image::GrayImage {
+    let (w, h) = (resp.image.width, resp.image.height);
+    let mut map = image::GrayImage::new(w as u32, h as u32);
+    for (k, d) in resp.detections.iter().enumerate().take(255) {
+        let Some(mask) = d
+            .mask
+            .as_ref()
+            .or(d.raw_mask.as_ref())
+            .and_then(Mask::from_rle)
+        else {
+            continue;
+        };
+        if (mask.width, mask.height) != (w, h) {
+            continue;
+        }
+        for (px, &on) in map.iter_mut().zip(&mask.data) {
+            if on != 0 && *px == 0 {
+                *px = (k + 1) as u8;
+            }
+        }
+    }
+    map
+}
+
+fn label_map_response(resp: &DetectResponse) -> Result<Response, ApiError> {
+    let map = label_map(resp);
+    let mut png = Vec::new();
+    map.write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
+        .map_err(|e| ApiError::Internal(format!("PNG encoder: {e}")))?;
+    let dets: Vec<HeaderDetection> = resp
+        .detections
+        .iter()
+        .map(|d| HeaderDetection {
+            label: &d.label,
+            model: &d.model,
+            score: d.score,
+            bbox: d.bbox,
+        })
+        .collect();
+    let json = serde_json::to_string(&dets).map_err(|e| ApiError::Internal(e.to_string()))?;
+    let value = HeaderValue::from_str(&ascii_json(&json))
+        .map_err(|e| ApiError::Internal(format!("X-Detections header: {e}")))?;
+    let mut out = ([(header::CONTENT_TYPE, "image/png")], png).into_response();
+    out.headers_mut().insert("x-detections", value);
+    Ok(out)
+}
+
+/// JSON with every non-ASCII character escaped, fit for a header.
+fn ascii_json(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        if c.is_ascii() && !c.is_ascii_control() {
+            out.push(c);
+        } else {
+            let mut buf = [0u16; 2];
+            for u in c.encode_utf16(&mut buf) {
+                out.push_str(&format!("\\u{u:04x}"));
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(q: &str) -> Result<DetectQuery, ApiError> {
+        DetectQuery::parse(Some(q), 100, Duration::from_secs(60))
+    }
+
+    #[test]
+    fn query_options_parse_and_refuse_bad_values() {
+        let q = parse("model=cup,pitcher&model=cup&threshold=-0.5&max_detections=20&masks=both&format=png&timeout_ms=500").unwrap();
+        assert_eq!(q.models, vec!["cup", "pitcher"]);
+        assert_eq!(q.threshold, Some(-0.5));
+        assert_eq!(q.max_detections, Some(20));
+        assert_eq!(q.masks, MaskMode::Both);
+        assert_eq!(q.format, Some(Format::Png));
+        assert_eq!(q.timeout, Some(Duration::from_millis(500)));
+        assert_eq!(
+            DetectQuery::parse(None, 100, Duration::from_secs(1))
+                .unwrap()
+                .models
+                .len(),
+            0
+        );
+        for bad in [
+            "threshold=abc",
+            "threshold=NaN",
+            "max_detections=0",
+            "max_detections=101",
+            "max_detections=-1",
+            "masks=all",
+            "format=gif",
+            "timeout_ms=0",
+            "timeout_ms=61000",
+            "model=",
+            "colour=red",
+        ] {
+            assert!(
+                matches!(parse(bad), Err(ApiError::BadRequest(_))),
+                "{bad} should be refused"
+            );
+        }
+    }
+
+    #[test]
+    fn non_ascii_is_escaped_for_headers() {
+        assert_eq!(ascii_json("{\"l\":\"tasse\"}"), "{\"l\":\"tasse\"}");
+        assert_eq!(ascii_json("é"), "\\u00e9");
+        assert!(HeaderValue::from_str(&ascii_json("\"🍵\"")).is_ok());
+    }
+}

@@ -1,0 +1,121 @@
+//! The one mapping from errors to HTTP statuses. Error bodies are JSON
+//! `{"error": "...", "kind": "..."}`; nothing a client can send is a 500.
+
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Serialize;
+use thiserror::Error;
+
+use crate::infer::InferError;
+use crate::vision::VisionError;
+
+/// Seconds a client should wait before retrying a 503.
+pub const RETRY_AFTER_SECONDS: u64 = 1;
+
+/// Errors of the HTTP layer.
+#[derive(Debug, Error)]
+pub enum ApiError {
+    #[error("{0}")]
+    BadRequest(String),
+    #[error("unknown model: {0}")]
+    UnknownModel(String),
+    #[error("{0}")]
+    NotFound(String),
+    #[error("method not allowed on this endpoint")]
+    MethodNotAllowed,
+    #[error("{0}")]
+    PayloadTooLarge(String),
+    #[error("{0}")]
+    UnsupportedMediaType(String),
+    #[error("{0}")]
+    Unprocessable(String),
+    #[error("the inference queue is full, retry later")]
+    Overloaded,
+    #[error("the service is not ready: {0}")]
+    NotReady(String),
+    #[error("the request's deadline passed before it was computed")]
+    DeadlineExceeded,
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+/// The JSON body of an error.
+#[derive(Debug, Serialize)]
+pub struct ErrorBody {
+    pub error: String,
+    pub kind: &'static str,
+}
+
+impl ApiError {
+    pub fn status(&self) -> StatusCode {
+        match self {
+            ApiError::BadRequest(_) => StatusCode::BAD_REQUEST,
+            ApiError::UnknownModel(_) | ApiError::NotFound(_) => StatusCode::NOT_FOUND,
+            ApiError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            ApiError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::Overloaded | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
+                StatusCode::SERVICE_UNAVAILABLE
+            }
+            ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ApiError::BadRequest(_) => "bad_request",
+            ApiError::UnknownModel(_) => "unknown_model",
+            ApiError::NotFound(_) => "not_found",
+            ApiError::MethodNotAllowed => "method_not_allowed",
+            ApiError::PayloadTooLarge(_) => "payload_too_large",
+            ApiError::UnsupportedMediaType(_) => "unsupported_media_type",
+            ApiError::Unprocessable(_) => "unprocessable",
+            ApiError::Overloaded => "overloaded",
+            ApiError::NotReady(_) => "not_ready",
+            ApiError::DeadlineExceeded => "deadline_exceeded",
+            ApiError::Internal(_) => "internal",
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let status = self.status();
+        let body = ErrorBody {
+            error: self.to_string(),
+            kind: self.kind(),
+        };
+        let mut resp = (status, Json(body)).into_response();
+        if status == StatusCode::SERVICE_UNAVAILABLE {
+            resp.headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECONDS));
+        }
+        resp
+    }
+}
+
+impl From<InferError> for ApiError {
+    fn from(e: InferError) -> Self {
+        match e {
+            InferError::Overloaded => ApiError::Overloaded,
+            InferError::ShuttingDown => ApiError::NotReady("shutting down".into()),
+            InferError::DeadlineExceeded => ApiError::DeadlineExceeded,
+            InferError::Vision(v) => v.into(),
+            InferError::Backend(b) => ApiError::NotReady(b.to_string()),
+            InferError::Internal(m) => ApiError::Internal(m),
+        }
+    }
+}
+
+impl From<VisionError> for ApiError {
+    fn from(e: VisionError) -> Self {
+        match e {
+            VisionError::ImageTooLarge { .. } => ApiError::PayloadTooLarge(e.to_string()),
+            // An image the detector cannot use (empty, smaller than a
+            // template): the request was well formed, its content is not.
+            _ => ApiError::Unprocessable(e.to_string()),
+        }
+    }
+}

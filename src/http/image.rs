@@ -1,0 +1,166 @@
+//! Validation of uploaded images before they enter the queue: the format
+//! from the bytes' signature (PNG or JPEG), the size from the header (an
+//! oversized image is refused before anything is allocated for its pixels),
+//! then the decode with allocation limits, off the async runtime.
+
+use std::io::Cursor;
+
+use image::{ImageFormat, ImageReader, Limits};
+
+use super::error::ApiError;
+use crate::vision::image::ColorImage;
+
+/// Limits on an uploaded image.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageLimits {
+    /// Most pixels (width times height).
+    pub max_pixels: usize,
+    /// Longest side.
+    pub max_side: u32,
+}
+
+impl Default for ImageLimits {
+    fn default() -> Self {
+        Self {
+            max_pixels: 16_000_000,
+            max_side: 16_384,
+        }
+    }
+}
+
+/// The media types an image may be sent as.
+pub const IMAGE_TYPES: [&str; 2] = ["image/jpeg", "image/png"];
+
+/// Decodes an uploaded PNG or JPEG into an RGB image, refusing it with the
+/// right error: 400 when empty, 415 when neither PNG nor JPEG, 413 when the
+/// header declares more pixels than allowed, 422 when it cannot be decoded.
+pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError> {
+    if bytes.is_empty() {
+        return Err(ApiError::BadRequest("the request has no image".into()));
+    }
+    let format = image::guess_format(bytes)
+        .map_err(|_| ApiError::Unprocessable("the body is not a PNG or JPEG image".into()))?;
+    if !matches!(format, ImageFormat::Png | ImageFormat::Jpeg) {
+        return Err(ApiError::UnsupportedMediaType(format!(
+            "images must be PNG or JPEG, got {format:?}"
+        )));
+    }
+    let reader = |bytes| {
+        let mut r = ImageReader::with_format(Cursor::new(bytes), format);
+        let mut l = Limits::default();
+        l.max_image_width = Some(limits.max_side);
+        l.max_image_height = Some(limits.max_side);
+        // Room for the decoded RGBA buffer of the largest allowed image.
+        l.max_alloc = Some((limits.max_pixels as u64).saturating_mul(4) + (1 << 20));
+        r.limits(l);
+        r
+    };
+    // The header alone, without limits: nothing is allocated for pixels.
+    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
+        .into_dimensions()
+        .map_err(|e| ApiError::Unprocessable(format!("cannot read the image header: {e}")))?;
+    if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
+        // The decoder fills a truncated scan with grey; refuse it instead.
+        return Err(ApiError::Unprocessable(
+            "the JPEG is truncated (no end-of-image marker after its last scan)".into(),
+        ));
+    }
+    if w == 0 || h == 0 {
+        return Err(ApiError::Unprocessable(format!(
+            "the image is empty ({w}x{h})"
+        )));
+    }
+    if w > limits.max_side
+        || h > limits.max_side
+        || (w as u64) * (h as u64) > limits.max_pixels as u64
+    {
+        return Err(ApiError::PayloadTooLarge(format!(
+            "the image is {w}x{h}; at most {} pixels and {} per side are accepted",
+            limits.max_pixels, limits.max_side
+        )));
+    }
+    let img = reader(bytes).decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => {
+            ApiError::PayloadTooLarge(format!("the image needs too much memory: {e}"))
+        }
+        _ => ApiError::Unprocessable(format!("cannot decode the image: {e}")),
+    })?;
+    ColorImage::from_rgb8(&img.to_rgb8()).map_err(|e| ApiError::Unprocessable(e.to_string()))
+}
+
+/// Whether a JPEG has an end-of-image marker (`FF D9`) after the start of
+/// its last scan (`FF DA`): a file cut in its entropy-coded data has not.
+/// Data after the end-of-image marker (as some cameras append) is allowed.
+fn jpeg_is_complete(bytes: &[u8]) -> bool {
+    let last = |m: u8| bytes.windows(2).rposition(|w| w == [0xFF, m]);
+    match (last(0xDA), last(0xD9)) {
+        (Some(sos), Some(eoi)) => eoi > sos,
+        _ => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png(w: u32, h: u32) -> Vec<u8> {
+        let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([x as u8, y as u8, 7]));
+        let mut out = Vec::new();
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Png)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn decodes_png_and_jpeg() {
+        let p = png(20, 10);
+        let img = decode(&p, &ImageLimits::default()).unwrap();
+        assert_eq!((img.width(), img.height()), (20, 10));
+        let rgb = image::RgbImage::from_fn(16, 8, |x, _| image::Rgb([x as u8 * 10, 0, 0]));
+        let mut j = Vec::new();
+        rgb.write_to(&mut Cursor::new(&mut j), ImageFormat::Jpeg)
+            .unwrap();
+        let img = decode(&j, &ImageLimits::default()).unwrap();
+        assert_eq!((img.width(), img.height()), (16, 8));
+    }
+
+    #[test]
+    fn refuses_bad_input_with_the_right_error() {
+        let limits = ImageLimits {
+            max_pixels: 100,
+            max_side: 50,
+        };
+        assert!(matches!(decode(&[], &limits), Err(ApiError::BadRequest(_))));
+        assert!(matches!(
+            decode(b"definitely not an image", &limits),
+            Err(ApiError::Unprocessable(_))
+        ));
+        assert!(matches!(
+            decode(&png(20, 10), &limits),
+            Err(ApiError::PayloadTooLarge(_))
+        ));
+        let mut gif = b"GIF89a".to_vec();
+        gif.extend([0u8; 20]);
+        assert!(matches!(
+            decode(&gif, &limits),
+            Err(ApiError::UnsupportedMediaType(_))
+        ));
+        let p = png(8, 8);
+        assert!(matches!(
+            decode(&p[..p.len() / 2], &ImageLimits::default()),
+            Err(ApiError::Unprocessable(_))
+        ));
+        let rgb = image::RgbImage::from_fn(64, 64, |x, y| image::Rgb([x as u8 * 3, y as u8, 9]));
+        let mut j = Vec::new();
+        rgb.write_to(&mut Cursor::new(&mut j), ImageFormat::Jpeg)
+            .unwrap();
+        assert!(decode(&j, &ImageLimits::default()).is_ok());
+        let mut trailing = j.clone();
+        trailing.extend_from_slice(b"appended by a camera");
+        assert!(decode(&trailing, &ImageLimits::default()).is_ok());
+        assert!(matches!(
+            decode(&j[..j.len() * 2 / 3], &ImageLimits::default()),
+            Err(ApiError::Unprocessable(_))
+        ));
+    }
+}

@@ -1,0 +1,113 @@
+//! The HTTP layer: axum handlers, request and response types, the one
+//! mapping from errors to statuses, metrics middleware and the router.
+//! Only this layer knows about HTTP.
+
+pub mod detect;
+pub mod error;
+pub mod image;
+pub mod metrics;
+pub mod ops;
+pub mod state;
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::extract::DefaultBodyLimit;
+use axum::http::Request;
+use axum::routing::{get, post};
+use axum::Router;
+use tower_http::trace::{DefaultOnResponse, TraceLayer};
+use tracing::Level;
+
+use crate::infer::{DetectTask, InferError};
+use crate::pipeline::{DetectOptions, MaskMode};
+use crate::vision::image::ColorImage;
+use error::ApiError;
+pub use state::{load_models, AppState, HttpConfig, LoadedModel};
+
+/// The service's routes.
+pub fn router(state: Arc<AppState>) -> Router {
+    let body_limit = state.config.max_body_bytes;
+    Router::new()
+        .route("/detect", post(detect::detect))
+        .route("/health/live", get(ops::live))
+        .route("/health/ready", get(ops::ready))
+        .route("/metrics", get(ops::metrics))
+        .route("/info", get(ops::info))
+        .route("/models", get(ops::models))
+        .route("/openapi.yaml", get(ops::openapi))
+        .route_layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&state),
+            metrics::track,
+        ))
+        .fallback(|| async { ApiError::NotFound("no such endpoint".into()) })
+        .method_not_allowed_fallback(|| async { ApiError::MethodNotAllowed })
+        .layer(DefaultBodyLimit::max(body_limit))
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(|req: &Request<_>| {
+                    tracing::info_span!("request", method = %req.method(), uri = %req.uri())
+                })
+                .on_request(())
+                .on_response(DefaultOnResponse::new().level(Level::INFO)),
+        )
+        .with_state(state)
+}
+
+/// Runs one detection per model on a synthetic image, through the queue,
+/// so that the first real request finds everything paged in; then marks
+/// the service ready.
+pub async fn warm_up(state: &AppState) -> Result<(), InferError> {
+    let (w, h) = (320usize, 240usize);
+    let data: Vec<f32> = (0..w * h * 3)
+        .map(|i| ((i / 3) % w * 255 / w) as f32)
+        .collect();
+    let image = ColorImage::new(w, h, data).map_err(InferError::Vision)?;
+    let task = DetectTask {
+        image: Arc::new(image),
+        models: state.models.iter().map(|m| Arc::clone(&m.model)).collect(),
+        opts: DetectOptions {
+            max_detections: Some(1),
+            masks: MaskMode::Refined,
+            ..DetectOptions::default()
+        },
+    };
+    let permit = state.infer.admit()?;
+    state
+        .infer
+        .detect(permit, task, Instant::now() + Duration::from_secs(120))
+        .await?;
+    state.set_ready();
+    Ok(())
+}
+
+/// Serves until `shutdown` resolves, then becomes not ready, stops
+/// admitting, lets requests in flight finish (at most `grace`), and drains
+/// the queue. Returns whether everything finished within the grace period.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    state: Arc<AppState>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+    grace: Duration,
+) -> std::io::Result<bool> {
+    let app = router(Arc::clone(&state));
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    let signal_state = Arc::clone(&state);
+    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
+        shutdown.await;
+        signal_state.begin_shutdown();
+        tracing::info!("shutting down: not ready, draining requests in flight");
+        let _ = tx.send(());
+    });
+    let server = tokio::spawn(async move { server.await });
+    // Wait for the signal, then give the server the grace period.
+    let _ = rx.await;
+    let drained = match tokio::time::timeout(grace, server).await {
+        Ok(Ok(Ok(()))) => true,
+        Ok(Ok(Err(e))) => return Err(e),
+        _ => false,
+    };
+    let queue_done = state.infer.shutdown(grace).await;
+    Ok(drained && queue_done)
+}

@@ -1,0 +1,186 @@
+//! What the handlers share: the queue, the loaded models, the limits, the
+//! metrics registry and the readiness flag.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use prometheus::Registry;
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+use thiserror::Error;
+
+use super::image::ImageLimits;
+use super::metrics::HttpMetrics;
+use crate::infer::Infer;
+use crate::model::{Model, ModelError};
+
+/// Limits and defaults of the HTTP layer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HttpConfig {
+    /// Largest request body of `POST /detect`, in bytes.
+    pub max_body_bytes: usize,
+    pub image: ImageLimits,
+    /// Deadline of a request that sets no `timeout_ms`.
+    pub default_timeout: Duration,
+    /// Largest `timeout_ms` a request may ask for.
+    pub max_timeout: Duration,
+    /// Largest `max_detections` a request may ask for.
+    pub max_detections: usize,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            max_body_bytes: 20 << 20,
+            image: ImageLimits::default(),
+            default_timeout: Duration::from_secs(30),
+            max_timeout: Duration::from_secs(300),
+            max_detections: 100,
+        }
+    }
+}
+
+/// A model loaded from its weights file.
+pub struct LoadedModel {
+    pub model: Arc<Model>,
+    pub file: PathBuf,
+    /// SHA-256 of the file, hex.
+    pub sha256: String,
+    pub size_bytes: u64,
+}
+
+/// Errors loading the models directory.
+#[derive(Debug, Error)]
+pub enum LoadError {
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {source}")]
+    Model { path: String, source: ModelError },
+    #[error("no weights file (*.safetensors) in {0}")]
+    Empty(String),
+    #[error("two models are named {0}")]
+    Duplicate(String),
+}
+
+/// Loads every `*.safetensors` file of `dir`, sorted by name.
+pub fn load_models(dir: &Path) -> Result<Vec<LoadedModel>, LoadError> {
+    let io = |source| LoadError::Io {
+        path: dir.display().to_string(),
+        source,
+    };
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .collect();
+    files.sort();
+    let mut out: Vec<LoadedModel> = Vec::new();
+    for file in files {
+        let bytes = std::fs::read(&file).map_err(|source| LoadError::Io {
+            path: file.display().to_string(),
+            source,
+        })?;
+        let model = Model::from_bytes(&bytes).map_err(|source| LoadError::Model {
+            path: file.display().to_string(),
+            source,
+        })?;
+        if out.iter().any(|m| m.model.meta.name == model.meta.name) {
+            return Err(LoadError::Duplicate(model.meta.name));
+        }
+        let digest = Sha256::digest(&bytes);
+        out.push(LoadedModel {
+            model: Arc::new(model),
+            file,
+            sha256: digest.iter().map(|b| format!("{b:02x}")).collect(),
+            size_bytes: bytes.len() as u64,
+        });
+    }
+    if out.is_empty() {
+        return Err(LoadError::Empty(dir.display().to_string()));
+    }
+    Ok(out)
+}
+
+/// The handlers' shared state.
+pub struct AppState {
+    pub infer: Infer,
+    pub models: Vec<LoadedModel>,
+    pub config: HttpConfig,
+    pub registry: Registry,
+    pub metrics: HttpMetrics,
+    /// Set once the models are warmed; cleared when shutting down.
+    ready: AtomicBool,
+    shutting_down: AtomicBool,
+}
+
+/// Why the service is not ready, if it is not.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NotReady {
+    WarmingUp,
+    ShuttingDown,
+    BackendUnhealthy,
+}
+
+impl NotReady {
+    pub fn reason(self) -> &'static str {
+        match self {
+            NotReady::WarmingUp => "models are warming up",
+            NotReady::ShuttingDown => "shutting down",
+            NotReady::BackendUnhealthy => "the compute backend failed",
+        }
+    }
+}
+
+impl AppState {
+    pub fn new(
+        infer: Infer,
+        models: Vec<LoadedModel>,
+        config: HttpConfig,
+        registry: Registry,
+    ) -> Result<Arc<Self>, prometheus::Error> {
+        let metrics = HttpMetrics::new(&registry)?;
+        Ok(Arc::new(Self {
+            infer,
+            models,
+            config,
+            registry,
+            metrics,
+            ready: AtomicBool::new(false),
+            shutting_down: AtomicBool::new(false),
+        }))
+    }
+
+    /// `Ok` when ready to serve, else why not.
+    pub fn readiness(&self) -> Result<(), NotReady> {
+        if self.shutting_down.load(Ordering::Acquire) || !self.infer.accepting() {
+            Err(NotReady::ShuttingDown)
+        } else if !self.infer.backend_healthy() {
+            Err(NotReady::BackendUnhealthy)
+        } else if !self.ready.load(Ordering::Acquire) {
+            Err(NotReady::WarmingUp)
+        } else {
+            Ok(())
+        }
+    }
+
+    pub fn set_ready(&self) {
+        self.ready.store(true, Ordering::Release);
+    }
+
+    /// Not ready from now on, and no new request is admitted.
+    pub fn begin_shutdown(&self) {
+        self.shutting_down.store(true, Ordering::Release);
+        self.infer.stop_admitting();
+    }
+
+    /// The model named `name`.
+    pub fn model(&self, name: &str) -> Option<&LoadedModel> {
+        self.models.iter().find(|m| m.model.meta.name == name)
+    }
+}

@@ -1,0 +1,66 @@
+//! Prometheus metrics of the queue (prefix `sdhop_`, bounded label values).
+
+use prometheus::{Histogram, HistogramOpts, IntCounterVec, IntGauge, Opts, Registry};
+
+/// The queue's metrics, registered in the service's registry.
+#[derive(Clone)]
+pub struct InferMetrics {
+    pub queue_size: IntGauge,
+    pub queue_duration: Histogram,
+    pub compute_duration: Histogram,
+    pub batch_size: Histogram,
+    /// Requests by outcome: completed, failed, expired, cancelled, rejected.
+    pub jobs: IntCounterVec,
+    pub backend_healthy: IntGauge,
+}
+
+/// Latency buckets in seconds, 1 ms to 60 s.
+const SECONDS: [f64; 14] = [
+    0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 60.0,
+];
+
+impl InferMetrics {
+    pub fn new(registry: &Registry) -> Result<Self, prometheus::Error> {
+        let m = Self {
+            queue_size: IntGauge::new("sdhop_queue_size", "Requests waiting in the queue")?,
+            queue_duration: Histogram::with_opts(
+                HistogramOpts::new(
+                    "sdhop_queue_duration_seconds",
+                    "Time requests waited in the queue",
+                )
+                .buckets(SECONDS.to_vec()),
+            )?,
+            compute_duration: Histogram::with_opts(
+                HistogramOpts::new(
+                    "sdhop_compute_duration_seconds",
+                    "Time from a batch's start to a request's answer",
+                )
+                .buckets(SECONDS.to_vec()),
+            )?,
+            batch_size: Histogram::with_opts(
+                HistogramOpts::new("sdhop_batch_size", "Requests computed together")
+                    .buckets(vec![1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0]),
+            )?,
+            jobs: IntCounterVec::new(
+                Opts::new("sdhop_queue_requests_total", "Queued requests by outcome"),
+                &["outcome"],
+            )?,
+            backend_healthy: IntGauge::new(
+                "sdhop_backend_healthy",
+                "1 while the compute backend works",
+            )?,
+        };
+        registry.register(Box::new(m.queue_size.clone()))?;
+        registry.register(Box::new(m.queue_duration.clone()))?;
+        registry.register(Box::new(m.compute_duration.clone()))?;
+        registry.register(Box::new(m.batch_size.clone()))?;
+        registry.register(Box::new(m.jobs.clone()))?;
+        registry.register(Box::new(m.backend_healthy.clone()))?;
+        Ok(m)
+    }
+
+    /// Counts one request with `outcome`.
+    pub fn job(&self, outcome: &str) {
+        self.jobs.with_label_values(&[outcome]).inc();
+    }
+}
