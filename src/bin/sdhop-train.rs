@@ -296,7 +296,8 @@ struct CvArgs {
     /// Run only these folds (numbered from 0; all by default).
     #[arg(long, value_delimiter = ',')]
     only_folds: Vec<usize>,
-    /// Save each fold's models in DIR/fold-F/.
+    /// Save each fold's models in DIR/fold-F/ (DIR/c-C/fold-F/ with several
+    /// --c-values).
     #[arg(long, value_name = "DIR", conflicts_with = "load_models")]
     save_models: Option<PathBuf>,
     /// Load each fold's models from DIR/fold-F/ (saved by an earlier run
@@ -735,7 +736,19 @@ fn run_cv(args: &CvArgs) -> Result<(), Failure> {
     for &c in &cs {
         params.c = c;
         let t = std::time::Instant::now();
-        let source = match (&args.save_models, &args.load_models) {
+        // With several values of C, each keeps its models in DIR/c-C.
+        let per_c = |d: &Path| {
+            if cs.len() > 1 {
+                d.join(format!("c-{c}"))
+            } else {
+                d.to_path_buf()
+            }
+        };
+        let (save, load) = (
+            args.save_models.as_deref().map(per_c),
+            args.load_models.as_deref().map(per_c),
+        );
+        let source = match (&save, &load) {
             (_, Some(d)) => FoldModels::Load(d),
             (Some(d), None) => FoldModels::TrainAndSave(d),
             (None, None) => FoldModels::Train,
