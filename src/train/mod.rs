@@ -111,10 +111,11 @@ pub struct TrainParams {
     pub pair_mode: PairwiseMode,
     pub seed: u64,
     /// Detection threshold saved in the model (score units; the SVM margin
-    /// puts positives at >= 1 and negatives at <= -1). The default, -0.5, is
-    /// what 5-fold cross-validation on CMU_KO8 chose (`sdhop-train cv`): the
-    /// highest threshold that keeps the best figures. Held-out objects often
-    /// score below the margin, so thresholds at 0 or above lose recall.
+    /// puts positives at >= 1 and negatives at <= -1). The default, -0.75,
+    /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
+    /// (`sdhop-train cv`): the highest threshold that keeps the best figures.
+    /// Held-out objects often score below the margin, so thresholds at 0 or
+    /// above lose recall.
     pub threshold: f64,
 }
 
@@ -141,7 +142,7 @@ impl Default for TrainParams {
             pairwise: true,
             pair_mode: PairwiseMode::Grid,
             seed: 1,
-            threshold: -0.5,
+            threshold: -0.75,
         }
     }
 }
