@@ -7,7 +7,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::model::Model;
-use crate::vision::detect::{detection_masks, DetectStats, Detector};
+use crate::vision::detect::{detection_masks, DenseBounds, DetectStats, Detector};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
@@ -165,6 +165,18 @@ pub fn detect_prebuilt(
     models: &[&Model],
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
+    detect_prebuilt_with(pyramids, models, &[], opts)
+}
+
+/// [`detect_prebuilt`] with the stage-1 chain bounds of some models computed
+/// by a backend (`bounds[i]` for `models[i]`; missing ones are computed by
+/// the detector).
+pub fn detect_prebuilt_with(
+    pyramids: &[&FeaturePyramid],
+    models: &[&Model],
+    bounds: &[Option<&DenseBounds>],
+    opts: &DetectOptions,
+) -> Result<DetectResponse, VisionError> {
     let Some(first) = pyramids.first() else {
         return Err(VisionError::InvalidParameter("no pyramid".into()));
     };
@@ -175,7 +187,7 @@ pub fn detect_prebuilt(
     let mut detections: Vec<DetectionJson> = Vec::new();
     let mut used = vec![false; pyramids.len()];
     let mut built_ms = 0.0;
-    for model in models {
+    for (mi, model) in models.iter().enumerate() {
         let m = &model.meta;
         let idx = pyramids
             .iter()
@@ -199,7 +211,16 @@ pub fn detect_prebuilt(
             timing.cell_segments += pyr.timing.cell_segments_ms;
             built_ms += pyr.timing.total_ms;
         }
-        run_model(pyr, model, opts, &mut timing, &mut stats, &mut detections)?;
+        let pre = bounds.get(mi).copied().flatten();
+        run_model(
+            pyr,
+            model,
+            pre,
+            opts,
+            &mut timing,
+            &mut stats,
+            &mut detections,
+        )?;
     }
     let mut resp = finish(w, h, detections, timing, stats, opts, start);
     resp.timing_ms.total += built_ms;
@@ -210,6 +231,7 @@ pub fn detect_prebuilt(
 fn run_model(
     pyr: &FeaturePyramid,
     model: &Model,
+    pre: Option<&DenseBounds>,
     opts: &DetectOptions,
     timing: &mut Timing,
     stats: &mut DetectStats,
@@ -225,7 +247,7 @@ fn run_model(
     }
     params.prune = opts.prune;
     let detector = Detector::new(&model.views)?;
-    let (dets, s) = detector.detect(pyr, &params)?;
+    let (dets, s) = detector.detect_with_bounds(pyr, &params, pre)?;
     stats.locations += s.locations;
     stats.min_cuts += s.min_cuts;
     timing.responses += s.responses_ms;

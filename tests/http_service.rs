@@ -756,10 +756,16 @@ async fn png_answer_is_a_label_map_of_the_detections() {
 
 /// Starts the real binary on port 0; returns the child and its address.
 fn spawn_binary(extra: &[&str]) -> (std::process::Child, String) {
+    spawn_binary_env(extra, &[])
+}
+
+/// [`spawn_binary`] with extra environment variables.
+fn spawn_binary_env(extra: &[&str], envs: &[(&str, &str)]) -> (std::process::Child, String) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_sdhop-serve"))
         .args(["--addr", "127.0.0.1:0", "--models-dir"])
         .arg(models_dir())
         .args(extra)
+        .envs(envs.iter().copied())
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -863,4 +869,108 @@ async fn service_json_equals_the_cli_json() {
     assert!(!svc["detections"].as_array().unwrap().is_empty());
     assert_eq!(cli, svc);
     assert!(server.stop().await);
+}
+
+async fn info_backend(base: &str) -> Value {
+    reqwest::get(format!("{base}/info"))
+        .await
+        .unwrap()
+        .json::<Value>()
+        .await
+        .unwrap()["backend"]
+        .clone()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn backend_choice_is_honoured_and_reported() {
+    // No adapter at all (wgpu looks at Metal only, which Linux lacks):
+    // `--backend gpu` refuses to start with a clear message, `auto` and
+    // `cpu` run on the CPU.
+    let none = [("WGPU_BACKEND", "metal")];
+    let out = Command::new(env!("CARGO_BIN_EXE_sdhop-serve"))
+        .args(["--addr", "127.0.0.1:0", "--backend", "gpu", "--models-dir"])
+        .arg(models_dir())
+        .envs(none)
+        .output()
+        .unwrap();
+    assert!(
+        !out.status.success(),
+        "--backend gpu without an adapter must fail"
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--backend gpu") && err.contains("adapter"),
+        "{err}"
+    );
+    for choice in ["auto", "cpu"] {
+        let (mut child, base) = spawn_binary_env(&["--backend", choice], &none);
+        wait_ready(&base).await;
+        assert_eq!(
+            info_backend(&base).await["kind"],
+            "cpu",
+            "--backend {choice}"
+        );
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+    // With the machine's own adapters: `auto` takes a hardware GPU only,
+    // `gpu` takes any adapter, software included.
+    let adapters = sdhop::backend::gpu::adapters(&sdhop::backend::GpuOptions::default());
+    let (mut child, base) = spawn_binary(&["--backend", "auto"]);
+    wait_ready(&base).await;
+    let kind = info_backend(&base).await["kind"].clone();
+    let hardware = adapters.first().is_some_and(|a| !a.software);
+    assert_eq!(kind, if hardware { "gpu" } else { "cpu" }, "{adapters:?}");
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let Some(best) = adapters.first() else {
+        if std::env::var_os("SDHOP_REQUIRE_GPU").is_some_and(|v| v != "0") {
+            panic!("SDHOP_REQUIRE_GPU is set but there is no GPU adapter");
+        }
+        eprintln!("skipped the --backend gpu half: no GPU adapter here");
+        return;
+    };
+    let (mut child, base) = spawn_binary(&["--backend", "gpu"]);
+    wait_ready(&base).await;
+    let b = info_backend(&base).await;
+    assert_eq!(b["kind"], "gpu");
+    assert!(b["device"].as_str().unwrap().contains(&best.name), "{b}");
+    // The GPU service answers as the CPU one does (timings aside).
+    let png = encode(&synthetic_scene(12, 320, 240), image::ImageFormat::Png);
+    let c = reqwest::Client::new();
+    let mut gpu: Value = c
+        .post(format!("{base}/detect?model=synthetic&masks=both"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let server = Server::default().await;
+    let mut cpu: Value = c
+        .post(server.url("/detect?model=synthetic&masks=both"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(server.stop().await);
+    gpu.as_object_mut().unwrap().remove("timing_ms");
+    cpu.as_object_mut().unwrap().remove("timing_ms");
+    assert!(!cpu["detections"].as_array().unwrap().is_empty());
+    // Scores may differ by float round-off on a real GPU; all else agrees.
+    for doc in [&mut gpu, &mut cpu] {
+        for d in doc["detections"].as_array_mut().unwrap() {
+            let s = d.as_object_mut().unwrap().remove("score").unwrap();
+            d["score_rounded"] = serde_json::json!((s.as_f64().unwrap() * 1e3).round());
+        }
+    }
+    assert_eq!(gpu, cpu);
 }

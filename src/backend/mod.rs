@@ -5,16 +5,20 @@
 //! locking of its own.
 
 pub mod cpu;
+pub mod gpu;
 
 use serde::Serialize;
 use thiserror::Error;
 
+use crate::vision::detect::DenseBounds;
+use crate::vision::energy::ViewWeights;
 use crate::vision::image::ColorImage;
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
 use crate::vision::VisionError;
 
 pub use cpu::CpuBackend;
+pub use gpu::{GpuBackend, GpuError, GpuOptions};
 
 /// Errors of a backend.
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -57,4 +61,52 @@ pub trait Backend: Send {
         &mut self,
         batch: &[FeatureJob<'_>],
     ) -> Vec<Result<Vec<FeaturePyramid>, BackendError>>;
+
+    /// The stage-1 chain bounds of every model (its viewpoints and the
+    /// largest truncation it scans) on one pyramid, or `None` when the
+    /// backend leaves them to the detector (the CPU backend: the detector
+    /// computes them as it scans).
+    fn dense_bounds(
+        &mut self,
+        _pyr: &FeaturePyramid,
+        _models: &[(&[ViewWeights], f64)],
+    ) -> Result<Option<Vec<DenseBounds>>, BackendError> {
+        Ok(None)
+    }
+}
+
+/// Which backend `sdhop-serve --backend` asks for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendChoice {
+    /// A real (discrete or integrated) GPU when there is one, else the CPU;
+    /// a software adapter (llvmpipe, lavapipe) counts as none.
+    #[default]
+    Auto,
+    Cpu,
+    /// The GPU backend on the best adapter, software ones included; fails
+    /// when there is no adapter at all.
+    Gpu,
+}
+
+/// Builds the backend `choice` asks for. With `auto`, also returns why the
+/// GPU was not taken, when it was not.
+pub fn select(
+    choice: BackendChoice,
+    options: &GpuOptions,
+) -> Result<(Box<dyn Backend>, Option<String>), GpuError> {
+    match choice {
+        BackendChoice::Cpu => Ok((Box::new(CpuBackend), None)),
+        BackendChoice::Gpu => {
+            let opts = GpuOptions {
+                allow_software: true,
+                ..*options
+            };
+            Ok((Box::new(GpuBackend::new(&opts)?), None))
+        }
+        BackendChoice::Auto => match GpuBackend::new(options) {
+            Ok(b) => Ok((Box::new(b), None)),
+            Err(e) => Ok((Box::new(CpuBackend), Some(e.to_string()))),
+        },
+    }
 }

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
 use prometheus::Registry;
-use sdhop::backend::{Backend, CpuBackend};
+use sdhop::backend::{select, BackendChoice, GpuOptions};
 use sdhop::http::image::ImageLimits;
 use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
 use sdhop::infer::{Infer, InferConfig, InferMetrics};
@@ -55,6 +55,12 @@ struct Args {
     /// Longest image side, in pixels.
     #[arg(long, env = "SDHOP_MAX_SIDE", default_value_t = 16_384)]
     max_side: u32,
+    /// Compute backend: `auto` takes a real GPU when there is one (a
+    /// software adapter such as llvmpipe counts as none) and the CPU
+    /// otherwise; `gpu` insists on a GPU adapter (software ones included)
+    /// and fails without one; `cpu` never looks for one.
+    #[arg(long, env = "SDHOP_BACKEND", value_enum, default_value_t = BackendChoice::Auto)]
+    backend: BackendChoice,
     /// Largest `max_detections` a request may ask for.
     #[arg(long, env = "SDHOP_MAX_DETECTIONS", default_value_t = 100)]
     max_detections: usize,
@@ -161,7 +167,11 @@ fn run(args: Args) -> Result<(), String> {
     }
     let models = load_models(&args.models_dir).map_err(|e| e.to_string())?;
     let registry = Registry::new();
-    let backend: Box<dyn Backend> = Box::new(CpuBackend);
+    let (backend, why_not_gpu) =
+        select(args.backend, &GpuOptions::default()).map_err(|e| format!("--backend gpu: {e}"))?;
+    if let Some(why) = why_not_gpu {
+        tracing::info!(reason = %why, "no usable GPU; running on the CPU backend");
+    }
     let infer_config = InferConfig {
         queue_size: args.queue_size,
         max_batch: args.max_batch,

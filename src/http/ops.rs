@@ -80,7 +80,7 @@ pub async fn info(State(state): State<Arc<AppState>>) -> Json<Info> {
     Json(Info {
         name: env!("CARGO_PKG_NAME"),
         version: env!("CARGO_PKG_VERSION"),
-        backend: state.infer.backend_info().clone(),
+        backend: state.infer.backend_info(),
         limits: Limits {
             max_body_bytes: c.max_body_bytes,
             max_pixels: c.image.max_pixels,

@@ -146,7 +146,7 @@ struct Shared {
     queued: AtomicUsize,
     accepting: AtomicBool,
     backend_healthy: AtomicBool,
-    backend_info: BackendInfo,
+    backend_info: std::sync::RwLock<BackendInfo>,
     metrics: InferMetrics,
 }
 
@@ -177,7 +177,7 @@ impl Infer {
             queued: AtomicUsize::new(0),
             accepting: AtomicBool::new(true),
             backend_healthy: AtomicBool::new(backend.healthy()),
-            backend_info: backend.info(),
+            backend_info: std::sync::RwLock::new(backend.info()),
             metrics,
         });
         shared.metrics.backend_healthy.set(1);
@@ -196,8 +196,12 @@ impl Infer {
         self.shared.config
     }
 
-    pub fn backend_info(&self) -> &BackendInfo {
-        &self.shared.backend_info
+    pub fn backend_info(&self) -> BackendInfo {
+        self.shared
+            .backend_info
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
     }
 
     /// The backend has not failed.

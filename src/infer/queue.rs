@@ -12,7 +12,8 @@ use rayon::prelude::*;
 use super::{InferError, Job, Shared, Work};
 use crate::backend::{Backend, FeatureJob};
 use crate::model::Model;
-use crate::pipeline::{detect_prebuilt, feature_settings};
+use crate::pipeline::{detect_prebuilt_with, feature_settings};
+use crate::vision::detect::DenseBounds;
 use crate::vision::pyramid::FeaturePyramid;
 
 /// Runs until the queue's channel is closed and empty.
@@ -93,13 +94,32 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
         }
     };
     drop(jobs);
+    // The stage-1 bounds, where the backend computes them (on this thread,
+    // which owns the backend).
+    let bounds: Vec<(Vec<Option<DenseBounds>>, f64)> = tasks
+        .iter()
+        .zip(&pyramids)
+        .map(|((task, tx), pyrs)| match pyrs {
+            Ok(pyrs) if task.opts.prune && !tx.is_closed() => {
+                let t = Instant::now();
+                let b = catch_unwind(AssertUnwindSafe(|| {
+                    model_bounds(backend, pyrs, &task.models)
+                }))
+                .unwrap_or_default();
+                (b, t.elapsed().as_secs_f64() * 1e3)
+            }
+            _ => (Vec::new(), 0.0),
+        })
+        .collect();
     let healthy = backend.healthy();
     shared.backend_healthy.store(healthy, Ordering::Release);
     metrics.backend_healthy.set(i64::from(healthy));
-    tasks
-        .into_par_iter()
-        .zip(pyramids)
-        .for_each(|((task, tx), pyrs)| {
+    *shared
+        .backend_info
+        .write()
+        .unwrap_or_else(|e| e.into_inner()) = backend.info();
+    tasks.into_par_iter().zip(pyramids).zip(bounds).for_each(
+        |(((task, tx), pyrs), (bounds, bounds_ms))| {
             if tx.is_closed() {
                 metrics.job("cancelled");
                 return;
@@ -108,7 +128,12 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                 let pyrs = pyrs.map_err(InferError::from)?;
                 let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();
                 let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
-                detect_prebuilt(&refs, &models, &task.opts).map_err(InferError::from)
+                let pre: Vec<Option<&DenseBounds>> = bounds.iter().map(Option::as_ref).collect();
+                let mut resp = detect_prebuilt_with(&refs, &models, &pre, &task.opts)
+                    .map_err(InferError::from)?;
+                resp.timing_ms.responses += bounds_ms;
+                resp.timing_ms.total += bounds_ms;
+                Ok(resp)
             }))
             .unwrap_or_else(|_| Err(InferError::Internal("detection failed".into())));
             metrics.job(if result.is_ok() {
@@ -120,5 +145,39 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                 .compute_duration
                 .observe(start.elapsed().as_secs_f64());
             let _ = tx.send(result);
-        });
+        },
+    );
+}
+
+/// Each model's stage-1 bounds on the pyramid with its feature settings, as
+/// the backend computes them (`None` where it leaves them to the detector).
+fn model_bounds(
+    backend: &mut dyn Backend,
+    pyrs: &[FeaturePyramid],
+    models: &[std::sync::Arc<Model>],
+) -> Vec<Option<DenseBounds>> {
+    let mut out: Vec<Option<DenseBounds>> = vec![None; models.len()];
+    for pyr in pyrs {
+        let idx: Vec<usize> = (0..models.len())
+            .filter(|&i| {
+                let m = &models[i].meta;
+                pyr.params == m.pyramid && pyr.seg_params == m.segmentation
+            })
+            .collect();
+        let asks: Vec<(&[crate::vision::energy::ViewWeights], f64)> = idx
+            .iter()
+            .map(|&i| {
+                (
+                    models[i].views.as_slice(),
+                    models[i].meta.detection.max_truncation,
+                )
+            })
+            .collect();
+        if let Ok(Some(bounds)) = backend.dense_bounds(pyr, &asks) {
+            for (i, b) in idx.into_iter().zip(bounds) {
+                out[i] = Some(b);
+            }
+        }
+    }
+    out
 }

@@ -525,6 +525,125 @@ fn overlap(start: isize, len: usize, size: usize) -> usize {
     (b - a).max(0) as usize
 }
 
+/// The top-left positions scanned on a `mw x mh` level for a `rows x cols`
+/// template: `(x_lo, x_hi, y_lo, y_hi, min_inside)`, or `None` when no box
+/// keeps enough cells inside the map.
+pub fn scan_range(
+    mw: usize,
+    mh: usize,
+    rows: usize,
+    cols: usize,
+    max_truncation: f64,
+) -> Option<(isize, isize, isize, isize, usize)> {
+    let n = rows * cols;
+    let min_inside = (((1.0 - max_truncation) * n as f64).ceil() as usize).max(1);
+    // Smallest overlap per axis that can still reach min_inside cells.
+    let min_x = min_inside.div_ceil(rows).max(1);
+    let min_y = min_inside.div_ceil(cols).max(1);
+    if mw < min_x || mh < min_y {
+        return None;
+    }
+    let (x_lo, x_hi) = positions(mw, cols, min_x);
+    let (y_lo, y_hi) = positions(mh, rows, min_y);
+    Some((x_lo, x_hi, y_lo, y_hi, min_inside))
+}
+
+/// The stage-1 chain bounds (unary and pairwise part, without the clique,
+/// truncation and bias terms) of every scanned position of one level and
+/// viewpoint: `values[(y - y_lo) * nx + (x - x_lo)]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LevelBounds {
+    pub x_lo: isize,
+    pub y_lo: isize,
+    pub nx: usize,
+    pub ny: usize,
+    pub values: Vec<f32>,
+}
+
+/// [`LevelBounds`] of every level and viewpoint of a model on one pyramid
+/// (`levels[level][view]`; `None` where the level has no position), as
+/// [`dense_bounds`] or a compute backend builds them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DenseBounds {
+    pub levels: Vec<Vec<Option<LevelBounds>>>,
+}
+
+impl DenseBounds {
+    fn get(&self, level: usize, view: usize) -> Option<&LevelBounds> {
+        self.levels.get(level)?.get(view)?.as_ref()
+    }
+}
+
+/// The Potts weight the chain bound may use: the bound holds for the Potts
+/// terms of every pair; with pairs along edges only, a pair may carry
+/// nothing, so it uses none.
+pub fn chain_pair_weight(w: &ViewWeights) -> f32 {
+    match w.pair_mode {
+        PairwiseMode::Grid => w.w_pair,
+        PairwiseMode::Edges => 0.0,
+    }
+}
+
+/// CPU reference of `kernels/dense_bounds.wgsl`: the chain bounds of every
+/// position of every level and viewpoint that a scan with `max_truncation`
+/// visits.
+pub fn dense_bounds(
+    pyr: &FeaturePyramid,
+    views: &[ViewWeights],
+    max_truncation: f64,
+) -> DenseBounds {
+    let levels = pyr
+        .levels
+        .par_iter()
+        .map(|level| {
+            views
+                .iter()
+                .map(|w| {
+                    let (mw, mh) = (level.hog.width(), level.hog.height());
+                    let (x_lo, x_hi, y_lo, y_hi, _) =
+                        scan_range(mw, mh, w.rows, w.cols, max_truncation)?;
+                    let map = PlanarMap::new(&level.hog, w.cols, w.rows);
+                    let nx = (x_hi - x_lo + 1) as usize;
+                    let ny = (y_hi - y_lo + 1) as usize;
+                    let mut values = vec![0.0f32; nx * ny];
+                    let mut scratch = DenseScratch::default();
+                    let pair = chain_pair_weight(w);
+                    for (row, out) in values.chunks_mut(nx).enumerate() {
+                        dense_row(&map, w, pair, x_lo, y_lo + row as isize, out, &mut scratch);
+                    }
+                    Some(LevelBounds {
+                        x_lo,
+                        y_lo,
+                        nx,
+                        ny,
+                        values,
+                    })
+                })
+                .collect()
+        })
+        .collect();
+    DenseBounds { levels }
+}
+
+/// CPU reference of `kernels/responses.wgsl`: the unaries of every cell of
+/// the box at `loc`, `(F_i, B_i + R_i)` (visible, occluded), row-major, as
+/// the min-cut uses them.
+pub fn responses(
+    pyr: &FeaturePyramid,
+    views: &[ViewWeights],
+    loc: &Location,
+) -> Result<Vec<(f64, f64)>, VisionError> {
+    if loc.level >= pyr.levels.len() || loc.view >= views.len() {
+        return Err(VisionError::InvalidParameter(format!(
+            "no level {} or viewpoint {}",
+            loc.level, loc.view
+        )));
+    }
+    let det = Detector::new(views)?;
+    let (p, _, _) = det.problem_at(pyr, loc);
+    Ok(p.u1.iter().zip(&p.u0).map(|(&f, &b)| (f, b)).collect())
+}
+
 /// An SD-HOP detector over the viewpoints of one model.
 pub struct Detector<'a> {
     views: Vec<View<'a>>,
@@ -564,34 +683,48 @@ impl<'a> Detector<'a> {
         params: &DetectParams,
         cut: f64,
         max_loss: f64,
+        pre: Option<&LevelBounds>,
     ) -> (usize, Vec<Candidate>) {
         let view = &self.views[vi];
         let (rows, cols) = (view.w.rows, view.w.cols);
         let n = rows * cols;
         let (mw, mh) = (level.hog.width(), level.hog.height());
-        let min_inside = (((1.0 - params.max_truncation) * n as f64).ceil() as usize).max(1);
-        // Smallest overlap per axis that can still reach min_inside cells.
-        let min_x = min_inside.div_ceil(rows).max(1);
-        let min_y = min_inside.div_ceil(cols).max(1);
-        if mw < min_x || mh < min_y {
+        let Some((x_lo, x_hi, y_lo, y_hi, min_inside)) =
+            scan_range(mw, mh, rows, cols, params.max_truncation)
+        else {
             return (0, Vec::new());
-        }
-        let (x_lo, x_hi) = positions(mw, cols, min_x);
-        let (y_lo, y_hi) = positions(mh, rows, min_y);
+        };
         let mut out = Vec::new();
         let mut count = 0;
-        let mut sums = vec![0.0f32; (x_hi - x_lo + 1) as usize];
+        let nx = (x_hi - x_lo + 1) as usize;
+        let mut sums = vec![0.0f32; nx];
         let mut scratch = DenseScratch::default();
-        // The chain bound holds for the Potts terms of every pair; with
-        // pairs along edges only, a pair may carry nothing, so it uses none.
-        let pair = match view.w.pair_mode {
-            PairwiseMode::Grid => view.w.w_pair,
-            PairwiseMode::Edges => 0.0,
+        let pair = chain_pair_weight(view.w);
+        // Bounds a backend computed for exactly these positions.
+        let pre = pre.filter(|b| {
+            b.x_lo == x_lo
+                && b.y_lo == y_lo
+                && b.nx == nx
+                && b.ny == (y_hi - y_lo + 1) as usize
+                && b.values.len() == b.nx * b.ny
+        });
+        // Without usable bounds the caller may not have built the map.
+        let own;
+        let map = if params.prune && pre.is_none() && map.data.is_empty() {
+            own = PlanarMap::new(&level.hog, cols, rows);
+            &own
+        } else {
+            map
         };
         for y in y_lo..=y_hi {
             let oy = overlap(y, rows, mh);
             if params.prune {
-                dense_row(map, view.w, pair, x_lo, y, &mut sums, &mut scratch);
+                if let Some(b) = pre {
+                    let r = (y - y_lo) as usize * nx;
+                    sums.copy_from_slice(&b.values[r..r + nx]);
+                } else {
+                    dense_row(map, view.w, pair, x_lo, y, &mut sums, &mut scratch);
+                }
             }
             for (k, x) in (x_lo..=x_hi).enumerate() {
                 let inside = overlap(x, cols, mw) * oy;
@@ -837,11 +970,23 @@ impl<'a> Detector<'a> {
         pyr: &FeaturePyramid,
         params: &DetectParams,
     ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
+        self.detect_with_bounds(pyr, params, None)
+    }
+
+    /// [`Self::detect`] with the stage-1 chain bounds computed elsewhere (by
+    /// a compute backend; see [`dense_bounds`]). Levels and viewpoints whose
+    /// bounds are missing or cover other positions are computed here.
+    pub fn detect_with_bounds(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        bounds: Option<&DenseBounds>,
+    ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
         params.validate()?;
         if params.max_detections == 0 {
             return Ok((Vec::new(), DetectStats::default()));
         }
-        let (solved, mut stats) = self.run(pyr, params, None, None);
+        let (solved, mut stats) = self.run(pyr, params, None, None, bounds);
         let t = Instant::now();
         let dets = self.suppress(pyr, solved, params);
         stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -871,7 +1016,7 @@ impl<'a> Detector<'a> {
             ..DetectParams::default()
         };
         params.validate()?;
-        let (solved, stats) = self.run(pyr, &params, Some(aug), budget);
+        let (solved, stats) = self.run(pyr, &params, Some(aug), budget, None);
         let found: Vec<Location> = solved.iter().map(|s| s.cand.location()).collect();
         let best = solved
             .into_iter()
@@ -926,6 +1071,7 @@ impl<'a> Detector<'a> {
         params: &DetectParams,
         aug: Option<&dyn LossAugment>,
         budget: Option<usize>,
+        pre: Option<&DenseBounds>,
     ) -> (Vec<Solved>, DetectStats) {
         let mut stats = DetectStats::default();
         let max_loss = aug.map_or(0.0, |a| a.max_loss());
@@ -933,7 +1079,7 @@ impl<'a> Detector<'a> {
         let t = Instant::now();
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
         let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
-        let maps: Vec<PlanarMap> = if params.prune {
+        let maps: Vec<PlanarMap> = if params.prune && pre.is_none() {
             pyr.levels
                 .par_iter()
                 .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
@@ -958,7 +1104,8 @@ impl<'a> Detector<'a> {
             .map(|&(l, v)| {
                 let map = maps.get(l).unwrap_or(&empty);
                 let level = &pyr.levels[l];
-                self.scan_level(l, level, map, counters.get(l), v, params, cut, max_loss)
+                let b = pre.and_then(|b| b.get(l, v));
+                self.scan_level(l, level, map, counters.get(l), v, params, cut, max_loss, b)
             })
             .collect();
         let mut cands: Vec<Candidate> = Vec::new();

@@ -11,6 +11,7 @@
 //! cells outside the map have all-zero features.
 
 use super::image::{ColorImage, CHANNELS};
+use super::VisionError;
 
 /// Dimension of a cell's feature vector.
 pub const HOG_DIM: usize = 31;
@@ -52,6 +53,29 @@ impl HogMap {
             height,
             data: vec![0.0; width * height * HOG_STRIDE],
         }
+    }
+
+    /// A map from raw storage (`HOG_STRIDE` values per cell, row-major), as
+    /// a compute backend returns it. The pad value of every cell is zeroed.
+    pub fn from_raw(width: usize, height: usize, mut data: Vec<f32>) -> Result<Self, VisionError> {
+        let expected = width * height * HOG_STRIDE;
+        if data.len() != expected {
+            return Err(VisionError::BufferSize {
+                expected,
+                actual: data.len(),
+            });
+        }
+        if data.iter().any(|v| !v.is_finite()) {
+            return Err(VisionError::NonFinite("HOG features"));
+        }
+        for cell in data.chunks_exact_mut(HOG_STRIDE) {
+            cell[HOG_DIM] = 0.0;
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
     }
 
     pub fn width(&self) -> usize {

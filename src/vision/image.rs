@@ -129,8 +129,9 @@ impl ColorImage {
 }
 
 /// For each output coordinate, the input coordinates it overlaps and the
-/// normalised overlap weights.
-fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
+/// normalised overlap weights (the taps of [`ColorImage::resize_area`],
+/// also uploaded to the GPU backend's `kernels/resize_area.wgsl`).
+pub fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
     let scale = src as f64 / dst as f64;
     (0..dst)
         .map(|o| {
