@@ -10,6 +10,7 @@ RUN mkdir -p src/bin benches \
  && echo "fn main() {}" > src/bin/sdhop-train.rs \
  && echo "fn main() {}" > src/bin/sdhop-serve.rs \
  && echo "fn main() {}" > benches/detect.rs \
+ && echo "fn main() {}" > benches/backends.rs \
  && cargo build --release --locked --bins \
  && rm -rf src benches
 COPY src ./src
@@ -19,6 +20,12 @@ COPY openapi.yaml ./
 RUN touch src/lib.rs src/bin/*.rs && cargo build --release --locked --bins
 
 FROM debian:bookworm-slim
+# The Vulkan loader, for the GPU backend where the runtime provides a GPU
+# and its driver (e.g. the NVIDIA container toolkit); without one the
+# service runs on the CPU.
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends libvulkan1 \
+ && rm -rf /var/lib/apt/lists/*
 RUN useradd --system --uid 10001 --no-create-home --shell /usr/sbin/nologin sdhop
 COPY --from=build /src/target/release/sdhop-serve /src/target/release/sdhop-train /usr/local/bin/
 COPY models /opt/sdhop/models
