@@ -10,7 +10,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use sdhop::backend::{Backend, CpuBackend, FeatureJob, GpuBackend, GpuOptions};
+use sdhop::backend::{model_bounds, Backend, CpuBackend, FeatureJob, GpuBackend, GpuOptions};
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
@@ -55,30 +55,10 @@ fn run_batch(
         .map(|r| r.expect("pyramids"))
         .collect();
     let t1 = Instant::now();
-    let mut all_bounds = Vec::new();
-    for pyrs in &pyramids {
-        let mut bounds: Vec<Option<DenseBounds>> = vec![None; models.len()];
-        for pyr in pyrs {
-            let idx: Vec<usize> = (0..models.len())
-                .filter(|&i| models[i].meta.pyramid == pyr.params)
-                .collect();
-            let asks: Vec<_> = idx
-                .iter()
-                .map(|&i| {
-                    (
-                        models[i].views.as_slice(),
-                        models[i].meta.detection.max_truncation,
-                    )
-                })
-                .collect();
-            if let Ok(Some(b)) = backend.dense_bounds(pyr, &asks) {
-                for (i, b) in idx.into_iter().zip(b) {
-                    bounds[i] = Some(b);
-                }
-            }
-        }
-        all_bounds.push(bounds);
-    }
+    let all_bounds: Vec<Vec<Option<DenseBounds>>> = pyramids
+        .iter()
+        .map(|pyrs| model_bounds(backend, pyrs, models))
+        .collect();
     let t2 = Instant::now();
     for (pyrs, bounds) in pyramids.iter().zip(&all_bounds) {
         let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();

@@ -10,7 +10,7 @@
 
 use std::path::Path;
 
-use sdhop::backend::{Backend, CpuBackend, FeatureJob, GpuBackend, GpuOptions};
+use sdhop::backend::{model_bounds, Backend, CpuBackend, FeatureJob, GpuBackend, GpuOptions};
 use sdhop::model::Model;
 use sdhop::pipeline::{
     detect_image, detect_prebuilt_with, feature_settings, DetectOptions, MaskMode,
@@ -297,28 +297,11 @@ fn detect_gpu(
         settings: &settings,
     };
     let pyrs = gpu.pyramids(&[job]).pop().unwrap().unwrap();
-    let mut bounds: Vec<Option<DenseBounds>> = vec![None; models.len()];
-    for pyr in &pyrs {
-        let idx: Vec<usize> = (0..models.len())
-            .filter(|&i| models[i].meta.pyramid == pyr.params)
-            .collect();
-        let asks: Vec<_> = idx
-            .iter()
-            .map(|&i| {
-                (
-                    models[i].views.as_slice(),
-                    models[i].meta.detection.max_truncation,
-                )
-            })
-            .collect();
-        let b = gpu
-            .dense_bounds(pyr, &asks)
-            .unwrap()
-            .expect("the GPU computes bounds");
-        for (i, b) in idx.into_iter().zip(b) {
-            bounds[i] = Some(b);
-        }
-    }
+    let bounds = model_bounds(gpu, &pyrs, models);
+    assert!(
+        bounds.iter().all(Option::is_some),
+        "the GPU computes every model's bounds"
+    );
     let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();
     let pre: Vec<Option<&DenseBounds>> = bounds.iter().map(Option::as_ref).collect();
     detect_prebuilt_with(&refs, models, &pre, opts).unwrap()

@@ -1127,6 +1127,12 @@ impl GpuBackend {
         }
     }
 
+    /// The open device, or why it was given up.
+    fn device(&mut self) -> Result<&mut Context, GpuError> {
+        let failure = self.failure.clone().unwrap_or_default();
+        self.ctx.as_mut().ok_or(GpuError::Lost(failure))
+    }
+
     /// The resized level images of `img` (for parity tests of
     /// `kernels/resize_area.wgsl`).
     pub fn resized_levels(
@@ -1134,10 +1140,7 @@ impl GpuBackend {
         img: &ColorImage,
         params: &PyramidParams,
     ) -> Result<Vec<ColorImage>, GpuError> {
-        let ctx = self
-            .ctx
-            .as_mut()
-            .ok_or_else(|| GpuError::Lost(self.failure.clone().unwrap_or_default()))?;
+        let ctx = self.device()?;
         Ok(ctx
             .features(&[(img, *params)], true)?
             .images
@@ -1152,10 +1155,7 @@ impl GpuBackend {
         img: &ColorImage,
         params: &PyramidParams,
     ) -> Result<Vec<HogMap>, GpuError> {
-        let ctx = self
-            .ctx
-            .as_mut()
-            .ok_or_else(|| GpuError::Lost(self.failure.clone().unwrap_or_default()))?;
+        let ctx = self.device()?;
         Ok(ctx
             .features(&[(img, *params)], false)?
             .hogs
@@ -1171,10 +1171,7 @@ impl GpuBackend {
         views: &[ViewWeights],
         locations: &[Location],
     ) -> Result<Vec<Vec<(f32, f32)>>, GpuError> {
-        let ctx = self
-            .ctx
-            .as_mut()
-            .ok_or_else(|| GpuError::Lost(self.failure.clone().unwrap_or_default()))?;
+        let ctx = self.device()?;
         ctx.responses(pyr, views, locations)
     }
 
@@ -1185,10 +1182,7 @@ impl GpuBackend {
         pyr: &FeaturePyramid,
         models: &[(&[ViewWeights], f64)],
     ) -> Result<Vec<DenseBounds>, GpuError> {
-        let ctx = self
-            .ctx
-            .as_mut()
-            .ok_or_else(|| GpuError::Lost(self.failure.clone().unwrap_or_default()))?;
+        let ctx = self.device()?;
         ctx.dense_bounds(pyr, models)
     }
 }

@@ -10,6 +10,7 @@ pub mod gpu;
 use serde::Serialize;
 use thiserror::Error;
 
+use crate::model::Model;
 use crate::vision::detect::DenseBounds;
 use crate::vision::energy::ViewWeights;
 use crate::vision::image::ColorImage;
@@ -73,6 +74,38 @@ pub trait Backend: Send {
     ) -> Result<Option<Vec<DenseBounds>>, BackendError> {
         Ok(None)
     }
+}
+
+/// Each model's stage-1 bounds on the pyramid with its feature settings, as
+/// `backend` computes them (`None` where it leaves them to the detector,
+/// or fails): what [`crate::pipeline::detect_prebuilt_with`] takes.
+pub fn model_bounds(
+    backend: &mut dyn Backend,
+    pyramids: &[FeaturePyramid],
+    models: &[&Model],
+) -> Vec<Option<DenseBounds>> {
+    let mut out: Vec<Option<DenseBounds>> = vec![None; models.len()];
+    for pyr in pyramids {
+        let idx: Vec<usize> = (0..models.len())
+            .filter(|&i| {
+                let m = &models[i].meta;
+                pyr.params == m.pyramid && pyr.seg_params == m.segmentation
+            })
+            .collect();
+        let asks: Vec<(&[ViewWeights], f64)> = idx
+            .iter()
+            .map(|&i| {
+                let m = models[i];
+                (m.views.as_slice(), m.meta.detection.max_truncation)
+            })
+            .collect();
+        if let Ok(Some(bounds)) = backend.dense_bounds(pyr, &asks) {
+            for (i, b) in idx.into_iter().zip(bounds) {
+                out[i] = Some(b);
+            }
+        }
+    }
+    out
 }
 
 /// Which backend `sdhop-serve --backend` asks for.

@@ -10,7 +10,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::{InferError, Job, Shared, Work};
-use crate::backend::{Backend, FeatureJob};
+use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
 use crate::pipeline::{detect_prebuilt_with, feature_settings};
 use crate::vision::detect::DenseBounds;
@@ -102,10 +102,9 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
         .map(|((task, tx), pyrs)| match pyrs {
             Ok(pyrs) if task.opts.prune && !tx.is_closed() => {
                 let t = Instant::now();
-                let b = catch_unwind(AssertUnwindSafe(|| {
-                    model_bounds(backend, pyrs, &task.models)
-                }))
-                .unwrap_or_default();
+                let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
+                let b = catch_unwind(AssertUnwindSafe(|| model_bounds(backend, pyrs, &models)))
+                    .unwrap_or_default();
                 (b, t.elapsed().as_secs_f64() * 1e3)
             }
             _ => (Vec::new(), 0.0),
@@ -147,37 +146,4 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
             let _ = tx.send(result);
         },
     );
-}
-
-/// Each model's stage-1 bounds on the pyramid with its feature settings, as
-/// the backend computes them (`None` where it leaves them to the detector).
-fn model_bounds(
-    backend: &mut dyn Backend,
-    pyrs: &[FeaturePyramid],
-    models: &[std::sync::Arc<Model>],
-) -> Vec<Option<DenseBounds>> {
-    let mut out: Vec<Option<DenseBounds>> = vec![None; models.len()];
-    for pyr in pyrs {
-        let idx: Vec<usize> = (0..models.len())
-            .filter(|&i| {
-                let m = &models[i].meta;
-                pyr.params == m.pyramid && pyr.seg_params == m.segmentation
-            })
-            .collect();
-        let asks: Vec<(&[crate::vision::energy::ViewWeights], f64)> = idx
-            .iter()
-            .map(|&i| {
-                (
-                    models[i].views.as_slice(),
-                    models[i].meta.detection.max_truncation,
-                )
-            })
-            .collect();
-        if let Ok(Some(bounds)) = backend.dense_bounds(pyr, &asks) {
-            for (i, b) in idx.into_iter().zip(bounds) {
-                out[i] = Some(b);
-            }
-        }
-    }
-    out
 }
