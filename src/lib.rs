@@ -14,6 +14,7 @@ pub mod http;
 pub mod infer;
 pub mod model;
 pub mod pipeline;
+pub mod pose;
 pub mod synth;
 pub mod train;
 pub mod vision;

@@ -1,0 +1,443 @@
+//! Edge-based pose refinement by iteratively re-weighted least squares
+//! (Choi and Christensen 2012), and its occlusion-reasoning variant
+//! OR-IRLS (paper section 2.6): correspondences whose model point or image
+//! match lies outside the visibility mask are dropped.
+//!
+//! Each outer iteration projects the visible model edges at the current
+//! pose, samples them every few pixels and searches along each sample's
+//! normal for the strongest image edge of compatible orientation; then a few
+//! Gauss-Newton steps on the 6-d twist minimise the Tukey-weighted
+//! point-to-edge distances along the normals (robust scale by the median
+//! absolute deviation). It stops when the pose no longer changes.
+
+use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
+
+use super::edges::{EdgeModel, EdgeSample};
+use super::geometry::{Intrinsics, Pose};
+use super::PoseError;
+use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
+
+/// Settings of the refinement.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IrlsParams {
+    /// Outer iterations (fresh correspondences) at most.
+    pub max_iterations: usize,
+    /// Gauss-Newton steps per set of correspondences.
+    pub inner_steps: usize,
+    /// Pixels between samples along a projected edge.
+    pub sample_step: f64,
+    /// Search range along the normal, in pixels each way, at the first
+    /// iteration; it shrinks by 30% per iteration down to a quarter of it
+    /// (coarse to fine: far edges pull early, near ones decide late).
+    pub search_range: f64,
+    /// Smallest gradient magnitude (0..255 intensity per pixel) of a match.
+    pub min_gradient: f64,
+    /// Largest angle (degrees) between an image gradient and the normal.
+    pub max_angle_degrees: f64,
+    /// Smallest dihedral angle (degrees) of a crease edge.
+    pub crease_degrees: f64,
+    /// Tukey constant, in robust standard deviations.
+    pub tukey_c: f64,
+    /// Converged when an iteration moves the model's points by less than
+    /// this in the image (pixels, at the object's depth).
+    pub tolerance_px: f64,
+    /// A Gauss-Newton step moves the model's points by at most this many
+    /// pixels (longer steps are shortened): a trust region.
+    pub max_step_px: f64,
+    /// OR-IRLS keeps a correspondence when its sample and its match lie
+    /// within this many pixels of the visibility mask (edges lie on the
+    /// mask's border).
+    pub mask_margin_px: usize,
+}
+
+impl Default for IrlsParams {
+    fn default() -> Self {
+        Self {
+            max_iterations: 30,
+            inner_steps: 3,
+            sample_step: 3.0,
+            search_range: 30.0,
+            min_gradient: 8.0,
+            max_angle_degrees: 30.0,
+            crease_degrees: 30.0,
+            tukey_c: 4.685,
+            tolerance_px: 0.5,
+            max_step_px: 4.0,
+            mask_margin_px: 3,
+        }
+    }
+}
+
+impl IrlsParams {
+    pub fn validate(&self) -> Result<(), PoseError> {
+        let ok = self.max_iterations >= 1
+            && self.max_iterations <= 1000
+            && self.inner_steps >= 1
+            && self.sample_step.is_finite()
+            && self.sample_step >= 0.5
+            && self.search_range.is_finite()
+            && self.search_range > 0.0
+            && self.search_range <= 200.0
+            && self.min_gradient.is_finite()
+            && (0.0..90.0).contains(&self.max_angle_degrees)
+            && (0.0..180.0).contains(&self.crease_degrees)
+            && self.tukey_c > 0.0
+            && self.tolerance_px > 0.0
+            && self.max_step_px > 0.0
+            && self.mask_margin_px <= 50;
+        if ok {
+            Ok(())
+        } else {
+            Err(PoseError::InvalidParameter(format!(
+                "invalid pose refinement settings {self:?}"
+            )))
+        }
+    }
+}
+
+/// Image gradients (Sobel on the grey image, after a 3x3 binomial blur).
+pub struct Gradients {
+    width: usize,
+    height: usize,
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+}
+
+impl Gradients {
+    pub fn new(img: &ColorImage) -> Self {
+        let (w, h) = (img.width(), img.height());
+        let grey: Vec<f32> = img
+            .data()
+            .chunks_exact(3)
+            .map(|c| (c[0] + c[1] + c[2]) / 3.0)
+            .collect();
+        let at = |v: &[f32], x: isize, y: isize| {
+            let x = x.clamp(0, w as isize - 1) as usize;
+            let y = y.clamp(0, h as isize - 1) as usize;
+            v[y * w + x]
+        };
+        let mut blur = vec![0.0f32; w * h];
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let mut s = 0.0;
+                for (dy, wy) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                    for (dx, wx) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                        s += wx * wy * at(&grey, x + dx, y + dy);
+                    }
+                }
+                blur[y as usize * w + x as usize] = s / 16.0;
+            }
+        }
+        let mut gx = vec![0.0f32; w * h];
+        let mut gy = vec![0.0f32; w * h];
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let p = |dx, dy| at(&blur, x + dx, y + dy);
+                let i = y as usize * w + x as usize;
+                gx[i] = ((p(1, -1) + 2.0 * p(1, 0) + p(1, 1))
+                    - (p(-1, -1) + 2.0 * p(-1, 0) + p(-1, 1)))
+                    / 8.0;
+                gy[i] = ((p(-1, 1) + 2.0 * p(0, 1) + p(1, 1))
+                    - (p(-1, -1) + 2.0 * p(0, -1) + p(1, -1)))
+                    / 8.0;
+            }
+        }
+        Self {
+            width: w,
+            height: h,
+            gx,
+            gy,
+        }
+    }
+
+    /// The gradient at the pixel containing `p`, if inside the image.
+    fn at(&self, p: &Vector2<f64>) -> Option<Vector2<f64>> {
+        if p.x < 0.0 || p.y < 0.0 {
+            return None;
+        }
+        let (x, y) = (p.x as usize, p.y as usize);
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        let i = y * self.width + x;
+        Some(Vector2::new(f64::from(self.gx[i]), f64::from(self.gy[i])))
+    }
+}
+
+/// A sample and its image match: the signed distance along the normal.
+#[derive(Clone, Copy, Debug)]
+struct Match {
+    sample: EdgeSample,
+    /// Match position minus sample position, along the normal (pixels).
+    offset: f64,
+}
+
+/// Searches along the sample's normal for the strongest compatible edge,
+/// with a parabolic sub-pixel refinement; ties go to the nearer one.
+fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<f64> {
+    let range = p.search_range.round() as i64;
+    let cos_max = p.max_angle_degrees.to_radians().cos();
+    let strength = |t: f64| -> f64 {
+        let q = s.pixel + s.normal * t;
+        match g.at(&q) {
+            Some(v) => {
+                let along = v.dot(&s.normal).abs();
+                let m = v.norm();
+                if m >= p.min_gradient && along >= cos_max * m {
+                    along
+                } else {
+                    0.0
+                }
+            }
+            None => 0.0,
+        }
+    };
+    let mut best: Option<(f64, i64)> = None;
+    for k in 0..=2 * range {
+        // 0, 1, -1, 2, -2, ...: nearer offsets first, so ties keep them.
+        let t = if k % 2 == 1 { (k + 1) / 2 } else { -(k / 2) };
+        let v = strength(t as f64);
+        if v > 0.0 && best.is_none_or(|(b, _)| v > b) {
+            best = Some((v, t));
+        }
+    }
+    let (v0, t) = best?;
+    let (vm, vp) = (strength(t as f64 - 1.0), strength(t as f64 + 1.0));
+    let denom = vm - 2.0 * v0 + vp;
+    let sub = if denom < -1e-12 {
+        (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    };
+    Some(t as f64 + sub)
+}
+
+fn inside(mask: &Mask, p: &Vector2<f64>) -> bool {
+    if p.x < 0.0 || p.y < 0.0 {
+        return false;
+    }
+    let (x, y) = (p.x as usize, p.y as usize);
+    x < mask.width && y < mask.height && mask.get(x, y)
+}
+
+/// The residual (pixels along the normal from the projected model point to
+/// its match) and its derivative with respect to the twist at `pose`.
+pub fn residual_and_jacobian(
+    k: &Intrinsics,
+    pose: &Pose,
+    point: &Vector3<f64>,
+    normal: &Vector2<f64>,
+    target: &Vector2<f64>,
+) -> Option<(f64, Vector6<f64>)> {
+    let pc = pose.transform(point);
+    let px = k.project(&pc)?;
+    let r = normal.dot(&(px - target));
+    let jp = k.project_jacobian(&pc);
+    // n^T J_pi, a 1x3 row.
+    let a = Vector3::new(
+        normal.x * jp[0][0] + normal.y * jp[1][0],
+        normal.x * jp[0][1] + normal.y * jp[1][1],
+        normal.x * jp[0][2] + normal.y * jp[1][2],
+    );
+    // dP/dv = I, dP/dw = -[P]x, so a^T (-[P]x) = (P x a)^T.
+    let w = pc.cross(&a);
+    Some((r, Vector6::new(a.x, a.y, a.z, w.x, w.y, w.z)))
+}
+
+/// The result of a refinement.
+#[derive(Clone, Debug)]
+pub struct PoseResult {
+    pub pose: Pose,
+    pub converged: bool,
+    pub iterations: usize,
+    /// Root of the weighted mean squared residual (pixels).
+    pub residual_rms_px: f64,
+    /// Matches with a non-zero Tukey weight at the end.
+    pub inliers: usize,
+    /// Samples of the last iteration that found a match and passed the mask.
+    pub samples: usize,
+    /// 6x6 covariance of the twist `(v, w)` from the weighted normal
+    /// equations (`sigma^2 H^-1`); rows of `(vx, vy, vz, wx, wy, wz)`.
+    pub covariance: [[f64; 6]; 6],
+}
+
+/// Refines `initial` by IRLS; with a `mask`, by OR-IRLS (correspondences
+/// whose sample or match lies outside the mask are dropped).
+pub fn refine(
+    img: &ColorImage,
+    edges: &EdgeModel,
+    k: &Intrinsics,
+    initial: &Pose,
+    mask: Option<&Mask>,
+    params: &IrlsParams,
+) -> Result<PoseResult, PoseError> {
+    params.validate()?;
+    k.validate()?;
+    if let Some(m) = mask {
+        if (m.width, m.height) != (img.width(), img.height()) {
+            return Err(PoseError::InvalidParameter(format!(
+                "the mask is {}x{}, the image {}x{}",
+                m.width,
+                m.height,
+                img.width(),
+                img.height()
+            )));
+        }
+    }
+    let grads = Gradients::new(img);
+    let match_mask = mask.map(|m| dilate(m, params.mask_margin_px));
+    let radius = edges.radius();
+    // Image motion of the model's points under a twist, at the pose's depth.
+    let motion = |pose: &Pose, xi: &Vector6<f64>| -> f64 {
+        let z = pose.translation.z.abs().max(1e-9);
+        let v = Vector3::new(xi[0], xi[1], xi[2]).norm();
+        let w = Vector3::new(xi[3], xi[4], xi[5]).norm();
+        k.fx.max(k.fy) * (v + w * radius) / z
+    };
+    let mut pose = *initial;
+    let mut converged = false;
+    let mut iterations = 0;
+    let mut last = (0.0, 0, 0, Matrix6::zeros());
+    for _ in 0..params.max_iterations {
+        iterations += 1;
+        let depth = edges.depth(k, &pose, img.width(), img.height());
+        let range = (params.search_range * 0.7f64.powi(iterations as i32 - 1))
+            .max(params.search_range / 4.0);
+        let round = IrlsParams {
+            search_range: range,
+            ..*params
+        };
+        // A model point may still be off by the search range: its test
+        // uses the mask grown by that much.
+        let sample_mask =
+            mask.map(|m| dilate(m, params.mask_margin_px.max(range.round() as usize)));
+        let matches: Vec<Match> = edges
+            .samples(k, &pose, &depth, params.sample_step)
+            .into_iter()
+            .filter_map(|s| {
+                let offset = search(&grads, &s, &round)?;
+                let target = s.pixel + s.normal * offset;
+                if let (Some(sm), Some(mm)) = (&sample_mask, &match_mask) {
+                    if !inside(sm, &s.pixel) || !inside(mm, &target) {
+                        return None;
+                    }
+                }
+                Some(Match { sample: s, offset })
+            })
+            .collect();
+        if matches.len() < 6 {
+            return Err(PoseError::NotEnoughEdges(matches.len()));
+        }
+        let start = pose;
+        for _ in 0..params.inner_steps {
+            let rows: Vec<(f64, Vector6<f64>)> = matches
+                .iter()
+                .filter_map(|m| {
+                    let target = m.sample.pixel + m.sample.normal * m.offset;
+                    residual_and_jacobian(k, &pose, &m.sample.point, &m.sample.normal, &target)
+                })
+                .collect();
+            let mut abs: Vec<f64> = rows.iter().map(|(r, _)| r.abs()).collect();
+            abs.sort_by(f64::total_cmp);
+            let med = abs.get(abs.len() / 2).copied().unwrap_or(0.0);
+            let sigma = (1.4826 * med).max(0.3);
+            let c = params.tukey_c * sigma;
+            let mut h = Matrix6::zeros();
+            let mut g = Vector6::zeros();
+            let (mut wsum, mut wr2, mut inliers) = (0.0, 0.0, 0usize);
+            for (r, j) in &rows {
+                let u = r / c;
+                if u.abs() >= 1.0 {
+                    continue;
+                }
+                let w = (1.0 - u * u).powi(2);
+                h += j * j.transpose() * w;
+                g += j * (w * r);
+                wsum += w;
+                wr2 += w * r * r;
+                inliers += 1;
+            }
+            if inliers < 6 {
+                return Err(PoseError::NotEnoughEdges(inliers));
+            }
+            // Levenberg-Marquardt damping keeps weakly constrained
+            // directions (e.g. rotation about a cylinder's axis) still.
+            let mut damped = h;
+            for i in 0..6 {
+                damped[(i, i)] += 1e-6 * h[(i, i)].max(1e-12);
+            }
+            let Some(mut step) = damped.cholesky().map(|ch| ch.solve(&(-g))) else {
+                return Err(PoseError::NotEnoughEdges(inliers));
+            };
+            let m = motion(&pose, &step);
+            if m > params.max_step_px {
+                step *= params.max_step_px / m;
+            }
+            pose = pose.updated(&step);
+            let rms = (wr2 / wsum.max(1e-12)).sqrt();
+            let cov = damped.try_inverse().unwrap_or_else(Matrix6::zeros) * (sigma * sigma);
+            last = (rms, inliers, matches.len(), cov);
+        }
+        // How far this iteration moved the model's points in the image.
+        let moved = matches
+            .iter()
+            .filter_map(|m| {
+                let a = k.project(&start.transform(&m.sample.point))?;
+                let b = k.project(&pose.transform(&m.sample.point))?;
+                Some((a - b).norm())
+            })
+            .fold(0.0, f64::max);
+        if moved < params.tolerance_px && range <= params.search_range / 4.0 + 1e-9 {
+            converged = true;
+            break;
+        }
+    }
+    let (rms, inliers, samples, cov) = last;
+    let mut covariance = [[0.0; 6]; 6];
+    for (r, row) in covariance.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = cov[(r, c)];
+        }
+    }
+    Ok(PoseResult {
+        pose,
+        converged,
+        iterations,
+        residual_rms_px: rms,
+        inliers,
+        samples,
+        covariance,
+    })
+}
+
+/// The mask grown by `r` pixels (square neighbourhood), by two passes of
+/// running maxima.
+fn dilate(m: &Mask, r: usize) -> Mask {
+    if r == 0 {
+        return m.clone();
+    }
+    let (w, h) = (m.width, m.height);
+    let mut rows = Mask::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            if m.get(x, y) {
+                for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                    rows.set(xx, y, true);
+                }
+            }
+        }
+    }
+    let mut out = Mask::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            if rows.get(x, y) {
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    out.set(x, yy, true);
+                }
+            }
+        }
+    }
+    out
+}

@@ -1,0 +1,351 @@
+//! Triangle meshes: OBJ (tobj) and PLY (ply-rs-bw, ASCII and binary)
+//! readers with validation, writers for tests, and the generated meshes of
+//! the pose benchmark (a box and a rounded cylinder).
+
+use std::io::BufReader;
+
+use nalgebra::Vector3;
+
+use super::PoseError;
+
+/// Most vertices or triangles a mesh may have.
+pub const MAX_MESH_ELEMENTS: usize = 5_000_000;
+
+/// A triangle mesh in the client's units.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mesh {
+    pub vertices: Vec<Vector3<f64>>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+fn bad(msg: impl Into<String>) -> PoseError {
+    PoseError::InvalidMesh(msg.into())
+}
+
+impl Mesh {
+    /// Checks the mesh: some triangles, finite coordinates, valid indices,
+    /// at most [`MAX_MESH_ELEMENTS`] of each.
+    pub fn validate(&self) -> Result<(), PoseError> {
+        if self.vertices.len() > MAX_MESH_ELEMENTS || self.triangles.len() > MAX_MESH_ELEMENTS {
+            return Err(PoseError::MeshTooLarge {
+                vertices: self.vertices.len(),
+                triangles: self.triangles.len(),
+            });
+        }
+        if self.triangles.is_empty() {
+            return Err(bad("the mesh has no triangles"));
+        }
+        if let Some(i) = self
+            .vertices
+            .iter()
+            .position(|v| !v.iter().all(|c| c.is_finite()))
+        {
+            return Err(bad(format!("vertex {i} has a non-finite coordinate")));
+        }
+        let n = self.vertices.len();
+        if let Some(t) = self
+            .triangles
+            .iter()
+            .position(|t| t.iter().any(|&i| i as usize >= n))
+        {
+            return Err(bad(format!(
+                "triangle {t} refers to a vertex beyond the {n} there are"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Reads an OBJ or PLY file (PLY when it starts with `ply`), then
+    /// validates it.
+    pub fn parse(bytes: &[u8]) -> Result<Self, PoseError> {
+        let mesh = if bytes.starts_with(b"ply") {
+            Self::from_ply(bytes)?
+        } else {
+            Self::from_obj(bytes)?
+        };
+        mesh.validate()?;
+        Ok(mesh)
+    }
+
+    /// Reads a Wavefront OBJ (polygons are triangulated; materials ignored).
+    pub fn from_obj(bytes: &[u8]) -> Result<Self, PoseError> {
+        let opts = tobj::LoadOptions {
+            single_index: true,
+            triangulate: true,
+            ..Default::default()
+        };
+        let mut reader = BufReader::new(bytes);
+        let (models, _) =
+            tobj::load_obj_buf(&mut reader, &opts, |_| Ok((Vec::new(), Default::default())))
+                .map_err(|e| bad(format!("OBJ: {e}")))?;
+        let mut mesh = Mesh {
+            vertices: Vec::new(),
+            triangles: Vec::new(),
+        };
+        for m in models {
+            let base = mesh.vertices.len();
+            let pos = &m.mesh.positions;
+            if pos.len() % 3 != 0 {
+                return Err(bad("OBJ: positions are not triples"));
+            }
+            mesh.vertices.extend(
+                pos.chunks_exact(3)
+                    .map(|c| Vector3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]))),
+            );
+            if mesh.vertices.len() > MAX_MESH_ELEMENTS {
+                return Err(PoseError::MeshTooLarge {
+                    vertices: mesh.vertices.len(),
+                    triangles: mesh.triangles.len(),
+                });
+            }
+            for t in m.mesh.indices.chunks_exact(3) {
+                let idx = |i: u32| -> Result<u32, PoseError> {
+                    u32::try_from(base + i as usize).map_err(|_| bad("OBJ: too many vertices"))
+                };
+                mesh.triangles.push([idx(t[0])?, idx(t[1])?, idx(t[2])?]);
+            }
+        }
+        Ok(mesh)
+    }
+
+    /// Reads a PLY (ASCII or binary): `vertex` x, y, z and `face`
+    /// `vertex_indices` (or `vertex_index`) lists, polygons fanned into
+    /// triangles.
+    pub fn from_ply(bytes: &[u8]) -> Result<Self, PoseError> {
+        use ply_rs_bw::parser::Parser;
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        let parser = Parser::<DefaultElement>::new();
+        let mut reader = BufReader::new(bytes);
+        let ply = parser
+            .read_ply(&mut reader)
+            .map_err(|e| bad(format!("PLY: {e}")))?;
+        let num = |p: Option<&Property>, what: &str| -> Result<f64, PoseError> {
+            Ok(match p {
+                Some(Property::Float(v)) => f64::from(*v),
+                Some(Property::Double(v)) => *v,
+                Some(Property::Char(v)) => f64::from(*v),
+                Some(Property::UChar(v)) => f64::from(*v),
+                Some(Property::Short(v)) => f64::from(*v),
+                Some(Property::UShort(v)) => f64::from(*v),
+                Some(Property::Int(v)) => f64::from(*v),
+                Some(Property::UInt(v)) => f64::from(*v),
+                _ => return Err(bad(format!("PLY: vertex without a numeric {what}"))),
+            })
+        };
+        let vertices = ply
+            .payload
+            .get("vertex")
+            .ok_or_else(|| bad("PLY: no vertex element"))?
+            .iter()
+            .map(|v| {
+                Ok(Vector3::new(
+                    num(v.get("x"), "x")?,
+                    num(v.get("y"), "y")?,
+                    num(v.get("z"), "z")?,
+                ))
+            })
+            .collect::<Result<Vec<_>, PoseError>>()?;
+        let mut triangles = Vec::new();
+        let faces = ply
+            .payload
+            .get("face")
+            .ok_or_else(|| bad("PLY: no face element"))?;
+        for (fi, f) in faces.iter().enumerate() {
+            let list = f.get("vertex_indices").or_else(|| f.get("vertex_index"));
+            let idx: Vec<i64> = match list {
+                Some(Property::ListInt(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                Some(Property::ListUInt(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                Some(Property::ListShort(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                Some(Property::ListUShort(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                Some(Property::ListChar(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                Some(Property::ListUChar(v)) => v.iter().map(|&i| i64::from(i)).collect(),
+                _ => return Err(bad(format!("PLY: face {fi} has no integer vertex_indices"))),
+            };
+            if idx.len() < 3 {
+                return Err(bad(format!("PLY: face {fi} has {} vertices", idx.len())));
+            }
+            let as_u32 =
+                |i: i64| u32::try_from(i).map_err(|_| bad(format!("PLY: face {fi} has index {i}")));
+            for k in 1..idx.len() - 1 {
+                triangles.push([as_u32(idx[0])?, as_u32(idx[k])?, as_u32(idx[k + 1])?]);
+            }
+            if triangles.len() > MAX_MESH_ELEMENTS {
+                return Err(PoseError::MeshTooLarge {
+                    vertices: vertices.len(),
+                    triangles: triangles.len(),
+                });
+            }
+        }
+        Ok(Mesh {
+            vertices,
+            triangles,
+        })
+    }
+
+    /// The mesh as OBJ text.
+    pub fn to_obj(&self) -> String {
+        let mut s = String::new();
+        for v in &self.vertices {
+            s.push_str(&format!("v {} {} {}\n", v.x, v.y, v.z));
+        }
+        for t in &self.triangles {
+            s.push_str(&format!("f {} {} {}\n", t[0] + 1, t[1] + 1, t[2] + 1));
+        }
+        s
+    }
+
+    /// The mesh as PLY, ASCII or binary little-endian.
+    pub fn to_ply(&self, binary: bool) -> Vec<u8> {
+        let header = format!(
+            "ply\nformat {} 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+            if binary { "binary_little_endian" } else { "ascii" },
+            self.vertices.len(),
+            self.triangles.len()
+        );
+        let mut out = header.into_bytes();
+        if binary {
+            for v in &self.vertices {
+                for c in v.iter() {
+                    out.extend_from_slice(&(*c as f32).to_le_bytes());
+                }
+            }
+            for t in &self.triangles {
+                out.push(3);
+                for &i in t {
+                    out.extend_from_slice(&(i as i32).to_le_bytes());
+                }
+            }
+        } else {
+            for v in &self.vertices {
+                out.extend_from_slice(
+                    format!("{} {} {}\n", v.x as f32, v.y as f32, v.z as f32).as_bytes(),
+                );
+            }
+            for t in &self.triangles {
+                out.extend_from_slice(format!("3 {} {} {}\n", t[0], t[1], t[2]).as_bytes());
+            }
+        }
+        out
+    }
+
+    /// An axis-aligned box centred on the origin, outward-facing triangles.
+    pub fn cuboid(sx: f64, sy: f64, sz: f64) -> Self {
+        let (hx, hy, hz) = (sx / 2.0, sy / 2.0, sz / 2.0);
+        let vertices: Vec<Vector3<f64>> = (0..8)
+            .map(|i| {
+                Vector3::new(
+                    if i & 1 == 0 { -hx } else { hx },
+                    if i & 2 == 0 { -hy } else { hy },
+                    if i & 4 == 0 { -hz } else { hz },
+                )
+            })
+            .collect();
+        // Quads as (a, b, c, d) counter-clockwise seen from outside.
+        let quads = [
+            [0, 2, 3, 1], // z-
+            [4, 5, 7, 6], // z+
+            [0, 1, 5, 4], // y-
+            [2, 6, 7, 3], // y+
+            [0, 4, 6, 2], // x-
+            [1, 3, 7, 5], // x+
+        ];
+        let triangles = quads
+            .iter()
+            .flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]])
+            .collect();
+        Self {
+            vertices,
+            triangles,
+        }
+    }
+
+    /// A closed cylinder along z, centred on the origin, with `segments`
+    /// sides: a rounded object whose outline is mostly silhouette edges.
+    pub fn cylinder(radius: f64, height: f64, segments: usize) -> Self {
+        let n = segments.max(3);
+        let h = height / 2.0;
+        let mut vertices = Vec::with_capacity(2 * n + 2);
+        for z in [-h, h] {
+            for k in 0..n {
+                let a = std::f64::consts::TAU * k as f64 / n as f64;
+                vertices.push(Vector3::new(radius * a.cos(), radius * a.sin(), z));
+            }
+        }
+        vertices.push(Vector3::new(0.0, 0.0, -h));
+        vertices.push(Vector3::new(0.0, 0.0, h));
+        let (bc, tc) = ((2 * n) as u32, (2 * n + 1) as u32);
+        let mut triangles = Vec::with_capacity(4 * n);
+        for k in 0..n {
+            let (a, b) = (k as u32, ((k + 1) % n) as u32);
+            let (at, bt) = (a + n as u32, b + n as u32);
+            triangles.push([a, b, bt]);
+            triangles.push([a, bt, at]);
+            triangles.push([bc, b, a]);
+            triangles.push([tc, at, bt]);
+        }
+        Self {
+            vertices,
+            triangles,
+        }
+    }
+
+    /// The largest distance between two vertices along an axis.
+    pub fn extent(&self) -> f64 {
+        let mut lo = Vector3::repeat(f64::INFINITY);
+        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+        for v in &self.vertices {
+            lo = lo.inf(v);
+            hi = hi.sup(v);
+        }
+        (hi - lo).max()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn obj_and_ply_round_trip() {
+        for mesh in [
+            Mesh::cuboid(0.1, 0.15, 0.08),
+            Mesh::cylinder(0.04, 0.12, 24),
+        ] {
+            // tobj renumbers vertices in order of first use: compare the
+            // triangles' corners.
+            let corners = |m: &Mesh| -> Vec<Vector3<f64>> {
+                m.triangles
+                    .iter()
+                    .flat_map(|t| t.map(|i| m.vertices[i as usize]))
+                    .collect()
+            };
+            let obj = Mesh::parse(mesh.to_obj().as_bytes()).unwrap();
+            assert_eq!(obj.triangles.len(), mesh.triangles.len());
+            for (a, b) in corners(&obj).iter().zip(corners(&mesh).iter()) {
+                assert!((a - b).norm() < 1e-6);
+            }
+            for binary in [false, true] {
+                let ply = Mesh::parse(&mesh.to_ply(binary)).unwrap();
+                assert_eq!(ply.triangles, mesh.triangles);
+                for (a, b) in ply.vertices.iter().zip(&mesh.vertices) {
+                    assert!((a - b).norm() < 1e-6);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn malformed_meshes_are_refused() {
+        let cases: [&[u8]; 6] = [
+            b"",
+            b"v 0 0 0\nv 1 0 0\nf 1 2 3\n",
+            b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n\x00\x00",
+        ];
+        for (i, c) in cases.iter().enumerate() {
+            assert!(Mesh::parse(c).is_err(), "case {i} was accepted");
+        }
+    }
+}

@@ -1,0 +1,32 @@
+//! 3-D pose from an image and a mesh (paper section 2.6): edge-based IRLS
+//! on SE(3) and its occlusion-reasoning variant OR-IRLS, which drops
+//! correspondences outside the detector's visibility mask.
+//!
+//! The vision layer's rules hold here too: no async runtime, web framework
+//! or GPU API.
+
+pub mod edges;
+pub mod geometry;
+pub mod irls;
+pub mod mesh;
+pub mod render;
+
+use thiserror::Error;
+
+pub use edges::EdgeModel;
+pub use geometry::{Intrinsics, Pose};
+pub use irls::{refine, IrlsParams, PoseResult};
+pub use mesh::Mesh;
+
+/// Errors of pose estimation.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum PoseError {
+    #[error("invalid mesh: {0}")]
+    InvalidMesh(String),
+    #[error("mesh too large: {vertices} vertices, {triangles} triangles")]
+    MeshTooLarge { vertices: usize, triangles: usize },
+    #[error("invalid parameter: {0}")]
+    InvalidParameter(String),
+    #[error("only {0} edge correspondences: the object is not visible enough at this pose")]
+    NotEnoughEdges(usize),
+}

@@ -1,0 +1,171 @@
+//! Synthetic pose scenes with exact ground truth: a mesh rendered with flat
+//! Lambert shading at a known pose over a background, optionally hidden in
+//! part by a random occluder, with the exact visible mask.
+
+use nalgebra::{Rotation3, Vector3};
+
+use super::edges::rasterize;
+use super::geometry::{Intrinsics, Pose};
+use super::mesh::Mesh;
+use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
+use crate::vision::rng::SplitMix64;
+use crate::vision::VisionError;
+
+/// A rendered scene.
+pub struct PoseScene {
+    pub image: ColorImage,
+    pub pose: Pose,
+    /// Object pixels not hidden by the occluder.
+    pub visible: Mask,
+    /// Fraction of the object's pixels that the occluder hides.
+    pub occluded_fraction: f64,
+}
+
+/// Renders `mesh` at `pose` over `background` (the image's size), shading
+/// each face by its orientation to a light; with `occlude`, a textured
+/// occluder covering about that fraction of the object (its strip enters
+/// from a random side); then noise of standard deviation `noise`.
+pub fn render(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    pose: &Pose,
+    background: &ColorImage,
+    occlude: f64,
+    noise: f64,
+    seed: u64,
+) -> Result<PoseScene, VisionError> {
+    let (w, h) = (background.width(), background.height());
+    let raster = rasterize(&mesh.vertices, &mesh.triangles, k, pose, w, h);
+    let light = Vector3::new(-0.4, -0.5, -0.77).normalize();
+    let shade: Vec<f32> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            let n = pose.rotation * (b - a).cross(&(c - a)).normalize();
+            (40.0 + 200.0 * n.dot(&light).abs()) as f32
+        })
+        .collect();
+    let mut rng = SplitMix64::new(seed);
+    let mut data = background.data().to_vec();
+    let mut object = Mask::new(w, h);
+    for i in 0..w * h {
+        let f = raster.face[i];
+        if f != u32::MAX {
+            object.set(i % w, i / w, true);
+            let s = shade[f as usize];
+            data[i * 3] = s;
+            data[i * 3 + 1] = s * 0.9;
+            data[i * 3 + 2] = s * 0.8;
+        }
+    }
+    let area = object.area();
+    let mut visible = object.clone();
+    if occlude > 0.0 && area > 0 {
+        // The object's pixel box; a strip from one side covering `occlude`
+        // of the box's extent, filled with a random colour and stripes.
+        let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                if object.get(x, y) {
+                    x0 = x0.min(x);
+                    y0 = y0.min(y);
+                    x1 = x1.max(x + 1);
+                    y1 = y1.max(y + 1);
+                }
+            }
+        }
+        let side = rng.range_usize(0, 4);
+        let base = [
+            rng.range_f64(20.0, 235.0) as f32,
+            rng.range_f64(20.0, 235.0) as f32,
+            rng.range_f64(20.0, 235.0) as f32,
+        ];
+        let period = rng.range_usize(6, 20);
+        let (bw, bh) = ((x1 - x0) as f64, (y1 - y0) as f64);
+        let cover = |x: usize, y: usize| -> bool {
+            let (fx, fy) = ((x as f64 - x0 as f64) / bw, (y as f64 - y0 as f64) / bh);
+            match side {
+                0 => fx < occlude,
+                1 => fx > 1.0 - occlude,
+                2 => fy < occlude,
+                _ => fy > 1.0 - occlude,
+            }
+        };
+        // Extend the occluder past the object's box by a margin.
+        let m = 10usize;
+        for y in y0.saturating_sub(m)..(y1 + m).min(h) {
+            for x in x0.saturating_sub(m)..(x1 + m).min(w) {
+                let (cx, cy) = (x.clamp(x0, x1 - 1), y.clamp(y0, y1 - 1));
+                if cover(cx, cy) {
+                    let stripe = if (x + y) / period % 2 == 0 { 1.0 } else { 0.6 };
+                    let i = (y * w + x) * 3;
+                    for c in 0..3 {
+                        data[i + c] = base[c] * stripe;
+                    }
+                    visible.set(x, y, false);
+                }
+            }
+        }
+    }
+    if noise > 0.0 {
+        for v in data.iter_mut() {
+            // Sum of uniforms: close to Gaussian.
+            let n: f64 = (0..4).map(|_| rng.next_f64() - 0.5).sum::<f64>() * (3.0f64).sqrt();
+            *v = (*v + (n * noise) as f32).clamp(0.0, 255.0);
+        }
+    }
+    let occluded_fraction = if area == 0 {
+        0.0
+    } else {
+        1.0 - visible.area() as f64 / area as f64
+    };
+    Ok(PoseScene {
+        image: ColorImage::new(w, h, data)?,
+        pose: *pose,
+        visible,
+        occluded_fraction,
+    })
+}
+
+/// A textured background: smooth gradients and blocks (no strong edges
+/// inside blocks), deterministic from `seed`.
+pub fn background(width: usize, height: usize, seed: u64) -> Result<ColorImage, VisionError> {
+    let mut rng = SplitMix64::new(seed);
+    let block = 40usize;
+    let cols = width.div_ceil(block);
+    let rows = height.div_ceil(block);
+    let tones: Vec<f32> = (0..cols * rows)
+        .map(|_| rng.range_f64(60.0, 160.0) as f32)
+        .collect();
+    let mut data = Vec::with_capacity(width * height * 3);
+    for y in 0..height {
+        for x in 0..width {
+            let t = tones[(y / block) * cols + x / block];
+            data.extend_from_slice(&[t, t * 1.05, t * 0.95]);
+        }
+    }
+    ColorImage::new(width, height, data)
+}
+
+/// `pose` moved by about `trans` (units of the mesh) and `degrees`, in
+/// random directions.
+pub fn perturb(pose: &Pose, trans: f64, degrees: f64, seed: u64) -> Pose {
+    let mut rng = SplitMix64::new(seed);
+    let mut unit = || {
+        let v = Vector3::new(
+            rng.range_f64(-1.0, 1.0),
+            rng.range_f64(-1.0, 1.0),
+            rng.range_f64(-1.0, 1.0),
+        );
+        v.try_normalize(1e-9).unwrap_or_else(Vector3::x)
+    };
+    let axis = unit();
+    let dir = unit();
+    let r = Rotation3::new(axis * degrees.to_radians()).into_inner();
+    Pose {
+        rotation: r * pose.rotation,
+        translation: pose.translation + dir * trans,
+    }
+}

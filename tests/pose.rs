@@ -1,0 +1,160 @@
+//! Edge-based pose refinement (IRLS and OR-IRLS) on rendered scenes with
+//! exact ground truth.
+
+use nalgebra::{Rotation3, Vector2, Vector3, Vector6};
+
+use sdhop::pose::irls::residual_and_jacobian;
+use sdhop::pose::render::{background, perturb, render};
+use sdhop::pose::{refine, EdgeModel, Intrinsics, IrlsParams, Mesh, Pose};
+use sdhop::vision::rng::SplitMix64;
+
+const K: Intrinsics = Intrinsics {
+    fx: 600.0,
+    fy: 600.0,
+    cx: 320.0,
+    cy: 240.0,
+};
+
+fn truth(seed: u64) -> Pose {
+    let mut rng = SplitMix64::new(seed);
+    Pose {
+        rotation: Rotation3::from_euler_angles(
+            rng.range_f64(-0.6, 0.6) + 0.4,
+            rng.range_f64(-0.6, 0.6) + 0.5,
+            rng.range_f64(-0.8, 0.8),
+        )
+        .into_inner(),
+        translation: Vector3::new(rng.range_f64(-0.03, 0.03), rng.range_f64(-0.03, 0.03), 0.5),
+    }
+}
+
+#[test]
+fn jacobian_matches_finite_differences() {
+    let mut rng = SplitMix64::new(5);
+    for case in 0..20 {
+        let pose = truth(case);
+        let point = Vector3::new(
+            rng.range_f64(-0.07, 0.07),
+            rng.range_f64(-0.07, 0.07),
+            rng.range_f64(-0.07, 0.07),
+        );
+        let a = rng.range_f64(0.0, std::f64::consts::TAU);
+        let normal = Vector2::new(a.cos(), a.sin());
+        let target = Vector2::new(rng.range_f64(200.0, 400.0), rng.range_f64(150.0, 300.0));
+        let (r0, j) = residual_and_jacobian(&K, &pose, &point, &normal, &target).unwrap();
+        let h = 1e-7;
+        for i in 0..6 {
+            let mut xi = Vector6::zeros();
+            xi[i] = h;
+            let (r1, _) =
+                residual_and_jacobian(&K, &pose.updated(&xi), &point, &normal, &target).unwrap();
+            let fd = (r1 - r0) / h;
+            assert!(
+                (fd - j[i]).abs() <= 1e-4 * (1.0 + j[i].abs()),
+                "case {case}, component {i}: finite difference {fd}, Jacobian {}",
+                j[i]
+            );
+        }
+    }
+}
+
+/// Rotation (degrees) and translation (mm) errors of a result.
+fn errors(est: &Pose, truth: &Pose) -> (f64, f64) {
+    let (angle, dist) = est.distance(truth);
+    (angle.to_degrees(), dist * 1e3)
+}
+
+#[test]
+fn unoccluded_scenes_converge_to_the_true_pose() {
+    let meshes = [
+        ("box", Mesh::cuboid(0.15, 0.1, 0.07)),
+        ("cylinder", Mesh::cylinder(0.04, 0.15, 48)),
+    ];
+    let params = IrlsParams::default();
+    for (name, mesh) in &meshes {
+        let edges = EdgeModel::new(mesh, params.crease_degrees);
+        for seed in 0..3 {
+            let pose = truth(seed);
+            let bg = background(640, 480, 100 + seed).unwrap();
+            let scene = render(mesh, &K, &pose, &bg, 0.0, 0.0, seed).unwrap();
+            let start = perturb(&pose, 0.01, 5.0, 200 + seed);
+            let r = refine(&scene.image, &edges, &K, &start, None, &params).unwrap();
+            let (deg, mm) = errors(&r.pose, &pose);
+            let (deg0, mm0) = errors(&start, &pose);
+            println!(
+                "{name} {seed}: start {deg0:.2} deg {mm0:.1} mm -> {deg:.3} deg {mm:.2} mm, {} iterations, {} inliers of {}, rms {:.2} px",
+                r.iterations, r.inliers, r.samples, r.residual_rms_px
+            );
+            // The cylinder's rotation about its own axis is unobservable
+            // from its edges: compare its axis instead.
+            let deg = if *name == "cylinder" {
+                let a = r.pose.rotation * Vector3::z();
+                let b = pose.rotation * Vector3::z();
+                a.angle(&b).to_degrees()
+            } else {
+                deg
+            };
+            println!("{name} {seed}: error {deg:.3} deg (axis for the cylinder), {mm:.2} mm");
+            assert!(mm < 2.0 && deg < 0.5, "{name} {seed}: {deg} deg, {mm} mm");
+            // The cylinder's roll drifts freely, so only the box must stop
+            // moving.
+            if *name == "box" {
+                assert!(r.converged, "{name} {seed}: not converged");
+            }
+        }
+    }
+}
+
+#[test]
+fn occluded_scenes_need_the_visibility_mask() {
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let params = IrlsParams::default();
+    let edges = EdgeModel::new(&mesh, params.crease_degrees);
+    let (mut with_mask, mut without) = (0, 0);
+    let n = 8;
+    for seed in 0..n {
+        let pose = truth(seed);
+        let bg = background(640, 480, 300 + seed).unwrap();
+        let scene = render(&mesh, &K, &pose, &bg, 0.45, 4.0, seed).unwrap();
+        let start = perturb(&pose, 0.01, 5.0, 400 + seed);
+        let ok = |r: Result<sdhop::pose::PoseResult, _>| match r {
+            Ok(r) => {
+                let (deg, mm) = errors(&r.pose, &pose);
+                println!(
+                    "  {deg:.2} deg {mm:.1} mm, {} iterations, {} inliers of {}",
+                    r.iterations, r.inliers, r.samples
+                );
+                deg < 1.0 && mm < 3.0
+            }
+            Err(e) => {
+                println!("  {e}");
+                false
+            }
+        };
+        let a = ok(refine(
+            &scene.image,
+            &edges,
+            &K,
+            &start,
+            Some(&scene.visible),
+            &params,
+        ));
+        let b = ok(refine(&scene.image, &edges, &K, &start, None, &params));
+        println!(
+            "seed {seed}: occluded {:.0}%, OR-IRLS {a}, IRLS {b}",
+            100.0 * scene.occluded_fraction
+        );
+        with_mask += usize::from(a);
+        without += usize::from(b);
+    }
+    println!("converged: OR-IRLS {with_mask}/{n}, IRLS {without}/{n}");
+    // Measured: OR-IRLS 6/8, IRLS 1/8.
+    assert!(
+        4 * with_mask as u64 >= 3 * n,
+        "OR-IRLS converged {with_mask}/{n}"
+    );
+    assert!(
+        with_mask as u64 >= without as u64 + n / 2,
+        "OR-IRLS {with_mask} vs IRLS {without}"
+    );
+}
