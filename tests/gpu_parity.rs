@@ -145,6 +145,7 @@ fn resized_levels_match_the_cpu() {
                 .zip(c.data())
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0f32, f32::max);
+            eprintln!("{name}, level {l}: resize max |diff| {worst:.2e}");
             assert!(
                 worst <= 1e-3,
                 "{name}, level {l}: resize differs by {worst}"
@@ -220,6 +221,13 @@ fn assert_bounds_close(name: &str, g: &DenseBounds, c: &DenseBounds) {
                         (gb.x_lo, gb.y_lo, gb.nx, gb.ny),
                         (cb.x_lo, cb.y_lo, cb.nx, cb.ny)
                     );
+                    let worst = gb
+                        .values
+                        .iter()
+                        .zip(&cb.values)
+                        .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
+                        .fold(0.0f32, f32::max);
+                    eprintln!("{name}, level {l}, view {v}: bounds max relative diff {worst:.2e}");
                     for (k, (a, b)) in gb.values.iter().zip(&cb.values).enumerate() {
                         let tol = 2e-5 * (1.0 + b.abs());
                         assert!(
@@ -268,10 +276,14 @@ fn dense_bounds_and_responses_match_the_cpu() {
                 }
             }
             let got = gpu.responses(&pyr, &m.views, &locs).unwrap();
+            let mut worst = 0.0f64;
             for (loc, g) in locs.iter().zip(&got) {
                 let c = responses(&pyr, &m.views, loc).unwrap();
                 assert_eq!(g.len(), c.len());
                 for (i, (&(gf, gb), &(cf, cb))) in g.iter().zip(&c).enumerate() {
+                    worst = worst
+                        .max((f64::from(gf) - cf).abs() / (1.0 + cf.abs()))
+                        .max((f64::from(gb) - cb).abs() / (1.0 + cb.abs()));
                     assert!(
                         (f64::from(gf) - cf).abs() <= 1e-5 * (1.0 + cf.abs())
                             && (f64::from(gb) - cb).abs() <= 1e-5 * (1.0 + cb.abs()),
@@ -279,6 +291,10 @@ fn dense_bounds_and_responses_match_the_cpu() {
                     );
                 }
             }
+            eprintln!(
+                "{name}, {}: responses max relative diff {worst:.2e}",
+                m.meta.name
+            );
         }
     }
 }
