@@ -11,6 +11,7 @@ RUN mkdir -p src/bin benches \
  && echo "fn main() {}" > src/bin/sdhop-serve.rs \
  && echo "fn main() {}" > benches/detect.rs \
  && echo "fn main() {}" > benches/backends.rs \
+ && echo "fn main() {}" > benches/pose.rs \
  && cargo build --release --locked --bins \
  && rm -rf src benches
 COPY src ./src
