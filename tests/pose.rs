@@ -158,3 +158,69 @@ fn occluded_scenes_need_the_visibility_mask() {
         "OR-IRLS {with_mask} vs IRLS {without}"
     );
 }
+
+#[test]
+fn cli_refines_a_pose_with_a_given_mask_and_refuses_bad_meshes() {
+    use std::process::Command;
+    let dir = std::env::temp_dir().join(format!("sdhop-pose-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let pose = truth(6);
+    let bg = background(640, 480, 306).unwrap();
+    let scene = render(&mesh, &K, &pose, &bg, 0.45, 4.0, 6).unwrap();
+    scene.image.to_rgb8().save(dir.join("scene.png")).unwrap();
+    let mut mask = image::GrayImage::new(640, 480);
+    for (x, y, p) in mask.enumerate_pixels_mut() {
+        p.0[0] = if scene.visible.get(x as usize, y as usize) {
+            255
+        } else {
+            0
+        };
+    }
+    mask.save(dir.join("mask.png")).unwrap();
+    std::fs::write(dir.join("box.ply"), mesh.to_ply(true)).unwrap();
+    std::fs::write(dir.join("bad.obj"), "v 0 0 0\nf 1 2 3\n").unwrap();
+    let start = perturb(&pose, 0.01, 5.0, 406);
+    let rows = start.rotation_rows();
+    let params = serde_json::json!({
+        "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy},
+        "initial_pose": {"rotation": rows, "translation": [start.translation.x, start.translation.y, start.translation.z]},
+        "mask": "provided"
+    });
+    std::fs::write(dir.join("params.json"), params.to_string()).unwrap();
+    let run = |mesh: &str| {
+        Command::new(env!("CARGO_BIN_EXE_sdhop-train"))
+            .arg("pose")
+            .arg("--image")
+            .arg(dir.join("scene.png"))
+            .arg("--mesh")
+            .arg(dir.join(mesh))
+            .arg("--params")
+            .arg(dir.join("params.json"))
+            .arg("--mask")
+            .arg(dir.join("mask.png"))
+            .output()
+            .unwrap()
+    };
+    let out = run("box.ply");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["mask_source"], "provided");
+    let r = &v["pose"]["rotation"];
+    let est = Pose::from_client(
+        std::array::from_fn(|i| std::array::from_fn(|j| r[i][j].as_f64().unwrap())),
+        std::array::from_fn(|i| v["pose"]["translation"][i].as_f64().unwrap()),
+    )
+    .unwrap();
+    let (deg, mm) = errors(&est, &pose);
+    assert!(deg < 1.0 && mm < 3.0, "{deg} deg, {mm} mm");
+    assert_eq!(v["covariance"].as_array().unwrap().len(), 6);
+    let bad = run("bad.obj");
+    assert_eq!(bad.status.code(), Some(2), "a bad mesh is bad input");
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("mesh"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

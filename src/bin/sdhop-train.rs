@@ -353,6 +353,31 @@ struct EvalArgs {
     detect_threshold: Option<f64>,
 }
 
+#[derive(clap::Args)]
+struct PoseArgs {
+    /// The image (PNG or JPEG).
+    #[arg(long)]
+    image: PathBuf,
+    /// The object's mesh (OBJ or PLY), in the units of the translation.
+    #[arg(long)]
+    mesh: PathBuf,
+    /// JSON parameters: {"intrinsics": {"fx", "fy", "cx", "cy"},
+    /// "initial_pose": {"rotation": [[3x3]], "translation": [x, y, z]},
+    /// "model": NAME, "mask": "detect" | "provided" | "none",
+    /// "max_iterations": N}; the pose is camera-from-object.
+    #[arg(long)]
+    params: PathBuf,
+    /// Visibility mask (PNG, non-zero = visible) for "mask": "provided".
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// Folder of detector models for "mask": "detect".
+    #[arg(long, default_value = "models")]
+    models_dir: PathBuf,
+    /// Largest image, in pixels.
+    #[arg(long, default_value_t = DEFAULT_MAX_PIXELS)]
+    max_pixels: usize,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Train one model per object (CMU_KO8 or a COCO-style file) and save
@@ -368,6 +393,10 @@ enum Command {
     Annotate(AnnotateArgs),
     /// Detect objects in one image; prints the detection JSON of `POST /detect`.
     Detect(DetectArgs),
+    /// Refine an object's 3-D pose from an image and its mesh (OR-IRLS with
+    /// a detected or given visibility mask, or plain IRLS); prints the JSON
+    /// of `POST /pose`.
+    Pose(PoseArgs),
     /// Generate a synthetic occluded scene and a hand-built model of its object,
     /// detect, and report box and mask accuracy against the exact truth.
     Demo(DemoArgs),
@@ -466,6 +495,40 @@ fn run_detect(args: &DetectArgs) -> Result<(), Failure> {
             .map_err(|e| Failure::io(format!("{}: {e}", p.display())))?;
     }
     write_json(&resp, args.output.as_deref())
+}
+
+fn run_pose(args: &PoseArgs) -> Result<(), Failure> {
+    use sdhop::pose::api::{estimate, mask_from_image, MaskSource, PoseParams};
+    let img = read_image(&args.image, args.max_pixels)?;
+    let read =
+        |p: &Path| std::fs::read(p).map_err(|e| Failure::io(format!("{}: {e}", p.display())));
+    let mesh = sdhop::pose::Mesh::parse(&read(&args.mesh)?)
+        .map_err(|e| Failure::input(format!("{}: {e}", args.mesh.display())))?;
+    let params: PoseParams = serde_json::from_slice(&read(&args.params)?)
+        .map_err(|e| Failure::input(format!("{}: {e}", args.params.display())))?;
+    let mask = match &args.mask {
+        Some(p) => {
+            let m = image::load_from_memory(&read(p)?)
+                .map_err(|e| Failure::input(format!("{}: {e}", p.display())))?;
+            Some(mask_from_image(&m))
+        }
+        None => None,
+    };
+    let models = if params.mask == MaskSource::Detect {
+        model_paths(&args.models_dir)?
+            .iter()
+            .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))
+            .collect::<Result<Vec<_>, _>>()?
+    } else {
+        Vec::new()
+    };
+    let refs: Vec<&Model> = models.iter().collect();
+    let resp = estimate(&img, &mesh, &params, mask, &refs).map_err(Failure::input)?;
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&resp).map_err(Failure::io)?
+    );
+    Ok(())
 }
 
 fn run_demo(args: &DemoArgs) -> Result<(), Failure> {
@@ -905,6 +968,7 @@ fn main() -> ExitCode {
         Command::Eval(a) => run_eval(a),
         Command::Annotate(a) => run_annotate(a),
         Command::Detect(a) => run_detect(a),
+        Command::Pose(a) => run_pose(a),
         Command::Demo(a) => run_demo(a),
     };
     match result {

@@ -5,6 +5,7 @@
 //! The vision layer's rules hold here too: no async runtime, web framework
 //! or GPU API.
 
+pub mod api;
 pub mod edges;
 pub mod geometry;
 pub mod irls;
@@ -29,4 +30,8 @@ pub enum PoseError {
     InvalidParameter(String),
     #[error("only {0} edge correspondences: the object is not visible enough at this pose")]
     NotEnoughEdges(usize),
+    #[error("no model named {0} is loaded")]
+    UnknownModel(String),
+    #[error("model {0} detects nothing in the image, so there is no mask")]
+    NotDetected(String),
 }
