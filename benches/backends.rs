@@ -18,19 +18,8 @@ use sdhop::vision::detect::DenseBounds;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::pyramid::FeaturePyramid;
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
-fn arg(name: &str, default: usize) -> usize {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
+mod common;
+use common::{arg, median};
 
 /// Stage times of one batch, per image: pyramids, bounds, min-cuts+masks,
 /// total; and the backend's own features time.
@@ -77,8 +66,8 @@ fn run_batch(
 }
 
 fn main() {
-    let iters = arg("--iters", 10);
-    let batch = arg("--batch", 1).max(1);
+    let iters = arg("--iters", 10usize);
+    let batch = arg("--batch", 1usize).max(1);
     let obj = SynthObject {
         cols: 18,
         rows: 16,

@@ -9,19 +9,11 @@ use std::time::Instant;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
+mod common;
+use common::{arg, median};
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let iters = args
-        .iter()
-        .position(|a| a == "--iters")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(30usize);
+    let iters = arg("--iters", 30usize);
     let obj = SynthObject {
         cols: 18,
         rows: 16,

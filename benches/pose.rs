@@ -11,19 +11,11 @@ use nalgebra::{Rotation3, Vector3};
 use sdhop::pose::render::{background, perturb, render};
 use sdhop::pose::{refine, EdgeModel, Intrinsics, IrlsParams, Mesh, Pose};
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
+mod common;
+use common::{arg, median};
 
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let iters = args
-        .iter()
-        .position(|a| a == "--iters")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(10u64);
+    let iters = arg("--iters", 10u64);
     let k = Intrinsics {
         fx: 600.0,
         fy: 600.0,

@@ -307,6 +307,18 @@ fn detect_gpu(
     models: &[&Model],
     opts: &DetectOptions,
 ) -> sdhop::pipeline::DetectResponse {
+    detect_through(gpu, img, models, opts, true)
+}
+
+/// The service's path through `gpu`; `on_gpu` says whether the device
+/// should still compute every model's bounds (it no longer does once lost).
+fn detect_through(
+    gpu: &mut GpuBackend,
+    img: &ColorImage,
+    models: &[&Model],
+    opts: &DetectOptions,
+    on_gpu: bool,
+) -> sdhop::pipeline::DetectResponse {
     let settings = feature_settings(models);
     let job = FeatureJob {
         image: img,
@@ -314,9 +326,10 @@ fn detect_gpu(
     };
     let pyrs = gpu.pyramids(&[job]).pop().unwrap().unwrap();
     let bounds = model_bounds(gpu, &pyrs, models);
-    assert!(
+    assert_eq!(
         bounds.iter().all(Option::is_some),
-        "the GPU computes every model's bounds"
+        on_gpu,
+        "bounds from the GPU exactly while it works"
     );
     let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();
     let pre: Vec<Option<&DenseBounds>> = bounds.iter().map(Option::as_ref).collect();
@@ -432,25 +445,6 @@ fn buffers_are_reused_and_device_loss_falls_back_to_the_cpu() {
         .dense_bounds(&pyrs[0], &[(&models[0].views, 0.5)])
         .unwrap()
         .is_none());
-    let again = detect_gpu_or_cpu(&mut gpu, &s.image, &refs, &opts);
+    let again = detect_through(&mut gpu, &s.image, &refs, &opts, false);
     assert_eq!(again.detections.len(), first.detections.len());
-}
-
-fn detect_gpu_or_cpu(
-    gpu: &mut GpuBackend,
-    img: &ColorImage,
-    models: &[&Model],
-    opts: &DetectOptions,
-) -> sdhop::pipeline::DetectResponse {
-    let settings = feature_settings(models);
-    let pyrs = gpu
-        .pyramids(&[FeatureJob {
-            image: img,
-            settings: &settings,
-        }])
-        .pop()
-        .unwrap()
-        .unwrap();
-    let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();
-    detect_prebuilt_with(&refs, models, &[], opts).unwrap()
 }

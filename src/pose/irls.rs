@@ -288,6 +288,7 @@ pub fn refine(
     }
     let grads = Gradients::new(img);
     let match_mask = mask.map(|m| dilate(m, params.mask_margin_px));
+    let mut sample_mask: Option<(usize, Mask)> = None;
     let radius = edges.radius();
     // Image motion of the model's points under a twist, at the pose's depth.
     let motion = |pose: &Pose, xi: &Vector6<f64>| -> f64 {
@@ -311,15 +312,20 @@ pub fn refine(
         };
         // A model point may still be off by the search range: its test
         // uses the mask grown by that much.
-        let sample_mask =
-            mask.map(|m| dilate(m, params.mask_margin_px.max(range.round() as usize)));
+        // (Grown again only when the range changes.)
+        let grow = params.mask_margin_px.max(range.round() as usize);
+        if let Some(m) = mask {
+            if sample_mask.as_ref().is_none_or(|(g, _)| *g != grow) {
+                sample_mask = Some((grow, dilate(m, grow)));
+            }
+        }
         let matches: Vec<Match> = edges
             .samples(k, &pose, &depth, params.sample_step)
             .into_iter()
             .filter_map(|s| {
                 let offset = search(&grads, &s, &round)?;
                 let target = s.pixel + s.normal * offset;
-                if let (Some(sm), Some(mm)) = (&sample_mask, &match_mask) {
+                if let (Some((_, sm)), Some(mm)) = (&sample_mask, &match_mask) {
                     if !inside(sm, &s.pixel) || !inside(mm, &target) {
                         return None;
                     }
@@ -412,32 +418,68 @@ pub fn refine(
     })
 }
 
-/// The mask grown by `r` pixels (square neighbourhood), by two passes of
-/// running maxima.
+/// The mask grown by `r` pixels (square neighbourhood): a row pass and a
+/// column pass, each testing a window by prefix counts, so the cost does
+/// not grow with `r` (it runs at every iteration, with `r` up to the search
+/// range).
 fn dilate(m: &Mask, r: usize) -> Mask {
     if r == 0 {
         return m.clone();
     }
     let (w, h) = (m.width, m.height);
-    let mut rows = Mask::new(w, h);
+    // Rows: set pixels among the row's prefix, per pixel.
+    let mut rows = vec![false; w * h];
+    let mut count = vec![0u32; w + 1];
     for y in 0..h {
         for x in 0..w {
-            if m.get(x, y) {
-                for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
-                    rows.set(xx, y, true);
-                }
-            }
+            count[x + 1] = count[x] + u32::from(m.get(x, y));
+        }
+        for x in 0..w {
+            rows[y * w + x] = count[(x + r + 1).min(w)] > count[x.saturating_sub(r)];
+        }
+    }
+    // Columns: prefix counts down each column, kept row-major.
+    let mut down = vec![0u32; (h + 1) * w];
+    for y in 0..h {
+        for x in 0..w {
+            down[(y + 1) * w + x] = down[y * w + x] + u32::from(rows[y * w + x]);
         }
     }
     let mut out = Mask::new(w, h);
     for y in 0..h {
+        let (lo, hi) = (y.saturating_sub(r) * w, (y + r + 1).min(h) * w);
         for x in 0..w {
-            if rows.get(x, y) {
-                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
-                    out.set(x, yy, true);
-                }
+            if down[hi + x] > down[lo + x] {
+                out.set(x, y, true);
             }
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::rng::SplitMix64;
+
+    #[test]
+    fn dilation_equals_the_square_neighbourhood_test() {
+        let mut rng = SplitMix64::new(3);
+        let (w, h) = (37, 23);
+        let mut m = Mask::new(w, h);
+        for _ in 0..12 {
+            m.set(rng.range_usize(0, w), rng.range_usize(0, h), true);
+        }
+        for r in [0, 1, 3, 30] {
+            let d = dilate(&m, r);
+            for y in 0..h {
+                for x in 0..w {
+                    let near = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|yy| {
+                        (x.saturating_sub(r)..(x + r + 1).min(w)).any(|xx| m.get(xx, yy))
+                    });
+                    assert_eq!(d.get(x, y), near, "r {r}, ({x}, {y})");
+                }
+            }
+        }
+    }
 }
