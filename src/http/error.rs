@@ -88,6 +88,11 @@ impl IntoResponse for ApiError {
             kind: self.kind(),
         };
         let mut resp = (status, Json(body)).into_response();
+        // An error may be answered before the request's body was read
+        // (admission, size limits), and then the connection cannot carry
+        // another request: saying so keeps clients from reusing it.
+        resp.headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
         if status == StatusCode::SERVICE_UNAVAILABLE {
             resp.headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_SECONDS));
