@@ -17,6 +17,8 @@ use reqwest::StatusCode;
 use sdhop::backend::CpuBackend;
 use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
 use sdhop::infer::{Infer, InferConfig, InferMetrics};
+use sdhop::pose::render::{background, perturb, render};
+use sdhop::pose::{Intrinsics, Mesh, Pose};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use serde_json::Value;
 
@@ -204,6 +206,361 @@ async fn call(
     (status, headers, body)
 }
 
+const K: Intrinsics = Intrinsics {
+    fx: 600.0,
+    fy: 600.0,
+    cx: 320.0,
+    cy: 240.0,
+};
+
+/// A box rendered at a known pose (45% occluded when `occlude`), its exact
+/// visible mask as PNG, and the start pose perturbed by 1 cm and 5 degrees.
+struct PoseScene {
+    png: Vec<u8>,
+    mask: Vec<u8>,
+    truth: Pose,
+    start: Pose,
+}
+
+fn pose_scene(occlude: bool) -> PoseScene {
+    use nalgebra::{Rotation3, Vector3};
+    let truth = Pose {
+        rotation: Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
+        translation: Vector3::new(0.01, -0.01, 0.5),
+    };
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let bg = background(640, 480, 77).unwrap();
+    let sc = render(
+        &mesh,
+        &K,
+        &truth,
+        &bg,
+        if occlude { 0.45 } else { 0.0 },
+        2.0,
+        7,
+    )
+    .unwrap();
+    let mut png = Vec::new();
+    sc.image
+        .to_rgb8()
+        .write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let m = image::GrayImage::from_fn(640, 480, |x, y| {
+        image::Luma([u8::from(sc.visible.get(x as usize, y as usize)) * 255])
+    });
+    let mut mask = Vec::new();
+    m.write_to(&mut Cursor::new(&mut mask), image::ImageFormat::Png)
+        .unwrap();
+    PoseScene {
+        png,
+        mask,
+        truth,
+        start: perturb(&truth, 0.01, 5.0, 8),
+    }
+}
+
+/// The `params` part for a start pose.
+fn pose_params(start: &Pose, extra: Value) -> String {
+    let t = start.translation;
+    let mut p = serde_json::json!({
+        "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy},
+        "initial_pose": {"rotation": start.rotation_rows(), "translation": [t.x, t.y, t.z]},
+    });
+    for (k, v) in extra.as_object().unwrap() {
+        p[k] = v.clone();
+    }
+    p.to_string()
+}
+
+/// A `POST /pose` form; `None` leaves a part out.
+fn pose_form(
+    image: Option<&[u8]>,
+    mesh: Option<&[u8]>,
+    mask: Option<&[u8]>,
+    params: Option<&str>,
+) -> reqwest::multipart::Form {
+    use reqwest::multipart::{Form, Part};
+    let mut f = Form::new();
+    if let Some(b) = image {
+        f = f.part("image", Part::bytes(b.to_vec()).file_name("scene.png"));
+    }
+    if let Some(b) = mesh {
+        f = f.part("mesh", Part::bytes(b.to_vec()).file_name("object.ply"));
+    }
+    if let Some(b) = mask {
+        f = f.part("mask", Part::bytes(b.to_vec()).file_name("mask.png"));
+    }
+    if let Some(p) = params {
+        f = f.text("params", p.to_string());
+    }
+    f
+}
+
+/// Rotation (degrees) and translation (mm) error of a pose response.
+fn pose_error(resp: &Value, truth: &Pose) -> (f64, f64) {
+    let r: [[f64; 3]; 3] = serde_json::from_value(resp["pose"]["rotation"].clone()).unwrap();
+    let t: [f64; 3] = serde_json::from_value(resp["pose"]["translation"].clone()).unwrap();
+    let est = Pose::from_client(r, t).unwrap();
+    let (angle, dist) = est.distance(truth);
+    (angle.to_degrees(), dist * 1e3)
+}
+
+/// Every documented answer of `POST /pose` but the 503 of a full queue.
+async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &reqwest::Client) {
+    let plain = pose_scene(false);
+    let occluded = pose_scene(true);
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let ply = mesh.to_ply(false);
+    let obj = mesh.to_obj().into_bytes();
+    let post = |q: &str| c.post(server.url(&format!("/pose{q}")));
+
+    // 200: plain IRLS on the unoccluded box (OBJ), OR-IRLS with the given
+    // mask on the occluded one (PLY).
+    let params = pose_params(&plain.start, serde_json::json!({}));
+    let form = pose_form(Some(&plain.png), Some(&obj), None, Some(&params));
+    let (s, _, body) = call(spec, seen, "/pose", "post", post("").multipart(form)).await;
+    assert_eq!(s, 200, "{}", String::from_utf8_lossy(&body));
+    let r: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(r["mask_source"], "none");
+    assert!(r["detection"].is_null());
+    let (deg, mm) = pose_error(&r, &plain.truth);
+    assert!(
+        deg < 0.5 && mm < 2.0,
+        "unoccluded: {deg:.2} deg, {mm:.2} mm"
+    );
+    let params = pose_params(&occluded.start, serde_json::json!({"max_iterations": 40}));
+    let form = pose_form(
+        Some(&occluded.png),
+        Some(&ply),
+        Some(&occluded.mask),
+        Some(&params),
+    );
+    let (s, _, body) = call(
+        spec,
+        seen,
+        "/pose",
+        "post",
+        post("?timeout_ms=60000").multipart(form),
+    )
+    .await;
+    assert_eq!(s, 200, "{}", String::from_utf8_lossy(&body));
+    let r: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(r["mask_source"], "provided");
+    let (deg, mm) = pose_error(&r, &occluded.truth);
+    assert!(
+        deg < 1.0 && mm < 3.0,
+        "occluded with mask: {deg:.2} deg, {mm:.2} mm"
+    );
+
+    // 200 with the mask of a detection: the synthetic model finds its
+    // object, and the box starts over the detection.
+    let sc = synthetic_scene(3, 640, 480);
+    let png = encode(&sc, image::ImageFormat::Png);
+    let (s, _, body) = call(
+        spec,
+        seen,
+        "/detect",
+        "post",
+        c.post(server.url("/detect?model=synthetic&max_detections=1"))
+            .header(CONTENT_TYPE, "image/png")
+            .body(png.clone()),
+    )
+    .await;
+    assert_eq!(s, 200);
+    let det: Value = serde_json::from_slice(&body).unwrap();
+    let b = &det["detections"][0]["box"];
+    let (bx, by) = (
+        b["x"].as_f64().unwrap() + b["width"].as_f64().unwrap() / 2.0,
+        b["y"].as_f64().unwrap() + b["height"].as_f64().unwrap() / 2.0,
+    );
+    let mut start = plain.start;
+    start.translation = nalgebra::Vector3::new((bx - K.cx) / K.fx, (by - K.cy) / K.fy, 1.0);
+    let params = pose_params(
+        &start,
+        serde_json::json!({"mask": "detect", "model": "synthetic"}),
+    );
+    let form = pose_form(Some(&png), Some(&ply), None, Some(&params));
+    let (s, _, body) = call(spec, seen, "/pose", "post", post("").multipart(form)).await;
+    assert_eq!(s, 200, "{}", String::from_utf8_lossy(&body));
+    let r: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(r["mask_source"], "detected");
+    assert_eq!(r["detection"]["model"], "synthetic");
+
+    // Errors.
+    let good = pose_params(&plain.start, serde_json::json!({}));
+    let skewed = {
+        let mut p: Value = serde_json::from_str(&good).unwrap();
+        p["initial_pose"]["rotation"][0][0] = Value::from(1.5);
+        p.to_string()
+    };
+    let tiny_mask = {
+        let mut out = Vec::new();
+        image::GrayImage::new(8, 8)
+            .write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png)
+            .unwrap();
+        out
+    };
+    let jpeg_mask = encode(&sc, image::ImageFormat::Jpeg);
+    let with_mask = |p: Value| pose_params(&plain.start, p);
+    let cases: Vec<(&str, reqwest::RequestBuilder, u16)> = vec![
+        (
+            "no mesh part",
+            post("").multipart(pose_form(Some(&plain.png), None, None, Some(&good))),
+            400,
+        ),
+        (
+            "no params part",
+            post("").multipart(pose_form(Some(&plain.png), Some(&ply), None, None)),
+            400,
+        ),
+        (
+            "unknown part",
+            post("").multipart(
+                pose_form(Some(&plain.png), Some(&ply), None, Some(&good)).text("colour", "red"),
+            ),
+            400,
+        ),
+        (
+            "params not JSON",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some("{\"intr"),
+            )),
+            400,
+        ),
+        (
+            "unknown query parameter",
+            post("?model=cup").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some(&good),
+            )),
+            400,
+        ),
+        (
+            "unknown model",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some(&with_mask(
+                    serde_json::json!({"mask": "detect", "model": "teapot"}),
+                )),
+            )),
+            404,
+        ),
+        (
+            "oversized body",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&vec![b'#'; 5 << 20]),
+                None,
+                Some(&good),
+            )),
+            413,
+        ),
+        (
+            "not multipart",
+            post("")
+                .header(CONTENT_TYPE, "image/png")
+                .body(plain.png.clone()),
+            415,
+        ),
+        (
+            "malformed mesh",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(b"v 0 0 0\nv 1 0 0\nf 1 2 7\n"),
+                None,
+                Some(&good),
+            )),
+            422,
+        ),
+        (
+            "non-finite mesh",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n"),
+                None,
+                Some(&good),
+            )),
+            422,
+        ),
+        (
+            "truncated binary PLY",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&mesh.to_ply(true)[..200]),
+                None,
+                Some(&good),
+            )),
+            422,
+        ),
+        (
+            "rotation far from orthonormal",
+            post("").multipart(pose_form(Some(&plain.png), Some(&ply), None, Some(&skewed))),
+            422,
+        ),
+        (
+            "params of the wrong shape",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some("{\"intrinsics\": [1, 2]}"),
+            )),
+            422,
+        ),
+        (
+            "mask of another size",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                Some(&tiny_mask),
+                Some(&good),
+            )),
+            422,
+        ),
+        (
+            "mask not a PNG",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                Some(&jpeg_mask),
+                Some(&good),
+            )),
+            422,
+        ),
+        (
+            "mask asked for but not sent",
+            post("").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some(&with_mask(serde_json::json!({"mask": "provided"}))),
+            )),
+            422,
+        ),
+        (
+            "deadline passes",
+            post("?timeout_ms=1").multipart(pose_form(
+                Some(&plain.png),
+                Some(&ply),
+                None,
+                Some(&good),
+            )),
+            503,
+        ),
+    ];
+    for (what, req, want) in cases {
+        let (s, _, body) = call(spec, seen, "/pose", "post", req).await;
+        assert_eq!(s, want, "{what}: {}", String::from_utf8_lossy(&body));
+    }
+}
+
 /// A PNG whose header claims 100000 x 100000 pixels (and nothing more).
 fn huge_png_header() -> Vec<u8> {
     let mut ihdr = Vec::new();
@@ -261,12 +618,14 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         },
         HttpConfig {
             max_body_bytes: 4 << 20,
+            max_pose_body_bytes: 4 << 20,
             ..HttpConfig::default()
         },
     )
     .await;
     let c = reqwest::Client::new();
     let mut seen = Vec::new();
+    pose_statuses(&spec, &mut seen, &server, &c).await;
     let sc = synthetic_scene(3, 320, 240);
     let png = encode(&sc, image::ImageFormat::Png);
     let jpeg = encode(&sc, image::ImageFormat::Jpeg);
@@ -983,4 +1342,54 @@ async fn backend_choice_is_honoured_and_reported() {
         }
     }
     assert_eq!(gpu, cpu);
+}
+
+/// Scanned meshes are large: the default limit of `POST /pose` admits a
+/// 30 MB request, and such a mesh (the box subdivided into 786,432
+/// triangles, ASCII PLY with normals and colours as scanners write it) is
+/// refined to the true pose.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pose_admits_a_30_mb_mesh() {
+    let server = Server::default().await;
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07).subdivided(8);
+    let mut ply = format!(
+        "ply\nformat ascii 1.0\ncomment scanned\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float nx\nproperty float ny\nproperty float nz\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        mesh.vertices.len(),
+        mesh.triangles.len()
+    );
+    for v in &mesh.vertices {
+        let n = v.normalize();
+        ply.push_str(&format!(
+            "{:.6} {:.6} {:.6} {:.4} {:.4} {:.4} 200 180 160\n",
+            v.x, v.y, v.z, n.x, n.y, n.z
+        ));
+    }
+    for t in &mesh.triangles {
+        ply.push_str(&format!("3 {} {} {}\n", t[0], t[1], t[2]));
+    }
+    let ply = ply.into_bytes();
+    let sc = pose_scene(false);
+    let params = pose_params(&sc.start, serde_json::json!({}));
+    let form = pose_form(Some(&sc.png), Some(&ply), None, Some(&params));
+    let total = ply.len() + sc.png.len() + params.len();
+    assert!(total > 30_000_000, "the request is {total} bytes");
+    let t = std::time::Instant::now();
+    let resp = reqwest::Client::new()
+        .post(server.url("/pose"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    let status = resp.status();
+    let body = resp.bytes().await.unwrap();
+    println!(
+        "{total} bytes, {} triangles: {status} in {:.0} ms",
+        mesh.triangles.len(),
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    assert_eq!(status, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    let r: Value = serde_json::from_slice(&body).unwrap();
+    let (deg, mm) = pose_error(&r, &sc.truth);
+    assert!(deg < 0.5 && mm < 2.0, "{deg:.2} deg, {mm:.2} mm");
+    assert!(server.stop().await);
 }

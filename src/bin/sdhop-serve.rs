@@ -49,6 +49,9 @@ struct Args {
     /// Largest request body of /detect, in bytes.
     #[arg(long, env = "SDHOP_MAX_BODY_BYTES", default_value_t = 20 << 20)]
     max_body_bytes: usize,
+    /// Largest request body of POST /pose (image, mesh and mask).
+    #[arg(long, env = "SDHOP_MAX_POSE_BODY_BYTES", default_value_t = 64 << 20)]
+    max_pose_body_bytes: usize,
     /// Largest image, in pixels (checked from the header, before decoding).
     #[arg(long, env = "SDHOP_MAX_PIXELS", default_value_t = 16_000_000)]
     max_pixels: usize,
@@ -181,6 +184,7 @@ fn run(args: Args) -> Result<(), String> {
     let infer = Infer::start(backend, infer_config, metrics).map_err(|e| e.to_string())?;
     let config = HttpConfig {
         max_body_bytes: args.max_body_bytes,
+        max_pose_body_bytes: args.max_pose_body_bytes,
         image: ImageLimits {
             max_pixels: args.max_pixels,
             max_side: args.max_side,

@@ -514,7 +514,7 @@ fn run_pose(args: &PoseArgs) -> Result<(), Failure> {
         }
         None => None,
     };
-    let models = if params.mask == MaskSource::Detect {
+    let models = if params.mask == Some(MaskSource::Detect) {
         model_paths(&args.models_dir)?
             .iter()
             .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))

@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::body::Body;
+use axum::extract::multipart::MultipartError;
 use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue};
 use axum::response::{IntoResponse, Response};
@@ -104,20 +105,22 @@ impl DetectQuery {
                         _ => return Err(bad(&k, &v, "expected json or png")),
                     })
                 }
-                "timeout_ms" => {
-                    let ms: u64 = v
-                        .parse()
-                        .map_err(|_| bad(&k, &v, "not a non-negative integer"))?;
-                    let limit = max_timeout.as_millis() as u64;
-                    if ms == 0 || ms > limit {
-                        return Err(bad(&k, &v, &format!("must be in 1..={limit}")));
-                    }
-                    q.timeout = Some(Duration::from_millis(ms));
-                }
+                "timeout_ms" => q.timeout = Some(timeout_param(&v, max_timeout)?),
                 _ => return Err(bad(&k, &v, "unknown parameter")),
             }
         }
         Ok(q)
+    }
+}
+
+/// The `timeout_ms` query parameter, checked against the largest allowed.
+pub(super) fn timeout_param(v: &str, max_timeout: Duration) -> Result<Duration, ApiError> {
+    let limit = max_timeout.as_millis() as u64;
+    match v.parse::<u64>() {
+        Ok(ms) if ms >= 1 && ms <= limit => Ok(Duration::from_millis(ms)),
+        _ => Err(ApiError::BadRequest(format!(
+            "query parameter timeout_ms={v:?}: must be an integer in 1..={limit}"
+        ))),
     }
 }
 
@@ -138,7 +141,7 @@ fn select_models(state: &AppState, names: &[String]) -> Result<Vec<Arc<Model>>, 
 }
 
 /// The media type of a request, without parameters, lower case.
-fn media_type(headers: &HeaderMap) -> Option<String> {
+pub(super) fn media_type(headers: &HeaderMap) -> Option<String> {
     let v = headers.get(header::CONTENT_TYPE)?.to_str().ok()?;
     Some(v.split(';').next()?.trim().to_ascii_lowercase())
 }
@@ -174,26 +177,20 @@ async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
                 .await
                 .map_err(|e| ApiError::BadRequest(e.body_text()))?;
             loop {
-                let field = mp.next_field().await.map_err(|e| {
-                    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
-                        too_large()
-                    } else {
-                        ApiError::BadRequest(e.body_text())
-                    }
-                })?;
+                let field = mp
+                    .next_field()
+                    .await
+                    .map_err(|e| multipart_error(&e, limit))?;
                 let Some(field) = field else {
                     return Err(ApiError::BadRequest(
                         "the multipart body has no `image` part".into(),
                     ));
                 };
                 if field.name() == Some("image") {
-                    let bytes = field.bytes().await.map_err(|e| {
-                        if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
-                            too_large()
-                        } else {
-                            ApiError::BadRequest(e.body_text())
-                        }
-                    })?;
+                    let bytes = field
+                        .bytes()
+                        .await
+                        .map_err(|e| multipart_error(&e, limit))?;
                     return Ok(bytes.to_vec());
                 }
             }
@@ -202,6 +199,15 @@ async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
             "send the image as image/jpeg, image/png or multipart/form-data, not {}",
             other.unwrap_or("a body without Content-Type")
         ))),
+    }
+}
+
+/// A multipart reading error: 413 past the body limit, else 400.
+pub(super) fn multipart_error(e: &MultipartError, limit: usize) -> ApiError {
+    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::PayloadTooLarge(format!("the body exceeds {limit} bytes"))
+    } else {
+        ApiError::BadRequest(e.body_text())
     }
 }
 

@@ -8,6 +8,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 use crate::infer::InferError;
+use crate::pose::PoseError;
 use crate::vision::VisionError;
 
 /// Seconds a client should wait before retrying a 503.
@@ -109,6 +110,7 @@ impl From<InferError> for ApiError {
             InferError::DeadlineExceeded => ApiError::DeadlineExceeded,
             InferError::Vision(v) => v.into(),
             InferError::Backend(b) => ApiError::NotReady(b.to_string()),
+            InferError::Pose(p) => p.into(),
             InferError::Internal(m) => ApiError::Internal(m),
         }
     }
@@ -121,6 +123,21 @@ impl From<VisionError> for ApiError {
             // An image the detector cannot use (empty, smaller than a
             // template): the request was well formed, its content is not.
             _ => ApiError::Unprocessable(e.to_string()),
+        }
+    }
+}
+
+impl From<PoseError> for ApiError {
+    fn from(e: PoseError) -> Self {
+        match e {
+            PoseError::MeshTooLarge { .. } => ApiError::PayloadTooLarge(e.to_string()),
+            PoseError::UnknownModel(name) => ApiError::UnknownModel(name),
+            // A well-formed request whose mesh, mask or parameters cannot
+            // be used, or whose object shows too few edges.
+            PoseError::InvalidMesh(_)
+            | PoseError::InvalidParameter(_)
+            | PoseError::NotEnoughEdges(_)
+            | PoseError::NotDetected(_) => ApiError::Unprocessable(e.to_string()),
         }
     }
 }

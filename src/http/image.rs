@@ -9,6 +9,7 @@ use image::{ImageFormat, ImageReader, Limits};
 
 use super::error::ApiError;
 use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
 
 /// Limits on an uploaded image.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -88,6 +89,27 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError
     ColorImage::from_rgb8(&img.to_rgb8()).map_err(|e| ApiError::Unprocessable(e.to_string()))
 }
 
+/// Decodes a visibility mask: a PNG whose non-zero pixels (any colour
+/// channel) are visible. Anything that is not a decodable PNG is 422 (413
+/// when its header declares too many pixels).
+pub fn decode_mask(bytes: &[u8], limits: &ImageLimits) -> Result<Mask, ApiError> {
+    if !matches!(image::guess_format(bytes), Ok(ImageFormat::Png)) {
+        return Err(ApiError::Unprocessable("the mask must be a PNG".into()));
+    }
+    let img = decode(bytes, limits).map_err(|e| match e {
+        ApiError::PayloadTooLarge(m) => ApiError::PayloadTooLarge(format!("mask: {m}")),
+        other => ApiError::Unprocessable(format!("mask: {other}")),
+    })?;
+    let (w, h) = (img.width(), img.height());
+    let mut mask = Mask::new(w, h);
+    for (i, px) in img.data().chunks_exact(3).enumerate() {
+        if px.iter().any(|&v| v != 0.0) {
+            mask.set(i % w, i / w, true);
+        }
+    }
+    Ok(mask)
+}
+
 /// Whether a JPEG has an end-of-image marker (`FF D9`) after the start of
 /// its last scan (`FF DA`): a file cut in its entropy-coded data has not.
 /// Data after the end-of-image marker (as some cameras append) is allowed.
@@ -162,5 +184,30 @@ mod tests {
             decode(&j[..j.len() * 2 / 3], &ImageLimits::default()),
             Err(ApiError::Unprocessable(_))
         ));
+    }
+
+    #[test]
+    fn masks_are_non_zero_pixels_of_a_png() {
+        let img = image::GrayImage::from_fn(6, 4, |x, y| image::Luma([u8::from(x > y) * 255]));
+        let mut p = Vec::new();
+        img.write_to(&mut Cursor::new(&mut p), ImageFormat::Png)
+            .unwrap();
+        let m = decode_mask(&p, &ImageLimits::default()).unwrap();
+        assert_eq!((m.width, m.height), (6, 4));
+        for y in 0..4 {
+            for x in 0..6 {
+                assert_eq!(m.get(x, y), x > y, "({x}, {y})");
+            }
+        }
+        let rgb = image::RgbImage::from_fn(8, 8, |_, _| image::Rgb([9, 9, 9]));
+        let mut j = Vec::new();
+        rgb.write_to(&mut Cursor::new(&mut j), ImageFormat::Jpeg)
+            .unwrap();
+        for bad in [&j[..], &p[..p.len() / 2], b"not a mask"] {
+            assert!(matches!(
+                decode_mask(bad, &ImageLimits::default()),
+                Err(ApiError::Unprocessable(_))
+            ));
+        }
     }
 }

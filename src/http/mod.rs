@@ -7,6 +7,7 @@ pub mod error;
 pub mod image;
 pub mod metrics;
 pub mod ops;
+pub mod pose;
 pub mod state;
 
 use std::future::Future;
@@ -29,8 +30,14 @@ pub use state::{load_models, AppState, HttpConfig, LoadedModel};
 /// The service's routes.
 pub fn router(state: Arc<AppState>) -> Router {
     let body_limit = state.config.max_body_bytes;
+    let pose_limit = state.config.max_pose_body_bytes;
     Router::new()
         .route("/detect", post(detect::detect))
+        // The route's own limit wins over the router's default.
+        .route(
+            "/pose",
+            post(pose::pose).layer(DefaultBodyLimit::max(pose_limit)),
+        )
         .route("/health/live", get(ops::live))
         .route("/health/ready", get(ops::ready))
         .route("/metrics", get(ops::metrics))

@@ -54,6 +54,7 @@ pub async fn metrics(State(state): State<Arc<AppState>>) -> Result<Response, Api
 #[derive(Serialize)]
 pub struct Limits {
     pub max_body_bytes: usize,
+    pub max_pose_body_bytes: usize,
     pub max_pixels: usize,
     pub max_side: u32,
     pub max_detections: usize,
@@ -83,6 +84,7 @@ pub async fn info(State(state): State<Arc<AppState>>) -> Json<Info> {
         backend: state.infer.backend_info(),
         limits: Limits {
             max_body_bytes: c.max_body_bytes,
+            max_pose_body_bytes: c.max_pose_body_bytes,
             max_pixels: c.image.max_pixels,
             max_side: c.image.max_side,
             max_detections: c.max_detections,

@@ -21,6 +21,9 @@ use crate::model::{Model, ModelError};
 pub struct HttpConfig {
     /// Largest request body of `POST /detect`, in bytes.
     pub max_body_bytes: usize,
+    /// Largest request body of `POST /pose` (image, mesh and mask), in
+    /// bytes: scanned meshes are large.
+    pub max_pose_body_bytes: usize,
     pub image: ImageLimits,
     /// Deadline of a request that sets no `timeout_ms`.
     pub default_timeout: Duration,
@@ -34,6 +37,7 @@ impl Default for HttpConfig {
     fn default() -> Self {
         Self {
             max_body_bytes: 20 << 20,
+            max_pose_body_bytes: 64 << 20,
             image: ImageLimits::default(),
             default_timeout: Duration::from_secs(30),
             max_timeout: Duration::from_secs(300),

@@ -27,7 +27,10 @@ use tokio::sync::oneshot;
 use crate::backend::{Backend, BackendError, BackendInfo};
 use crate::model::Model;
 use crate::pipeline::{DetectOptions, DetectResponse};
+use crate::pose::api::{PoseParams, PoseResponse};
+use crate::pose::{Mesh, PoseError};
 use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
 use crate::vision::VisionError;
 
 pub use metrics::InferMetrics;
@@ -69,6 +72,9 @@ pub enum InferError {
     Vision(#[from] VisionError),
     #[error("compute backend: {0}")]
     Backend(BackendError),
+    /// The pose request was refused or could not be solved.
+    #[error(transparent)]
+    Pose(#[from] PoseError),
     /// A bug: the worker failed on this request.
     #[error("internal error: {0}")]
     Internal(String),
@@ -90,11 +96,26 @@ pub struct DetectTask {
     pub opts: DetectOptions,
 }
 
+/// A pose to refine: a decoded image, a parsed mesh, the checked
+/// parameters, the client's mask, and the model whose detection gives the
+/// mask (with `mask: "detect"`).
+pub struct PoseTask {
+    pub image: Arc<ColorImage>,
+    pub mesh: Mesh,
+    pub params: PoseParams,
+    pub mask: Option<Mask>,
+    pub model: Option<Arc<Model>>,
+}
+
 /// What the worker computes and where the answer goes.
 enum Work {
     Detect(
         DetectTask,
         oneshot::Sender<Result<DetectResponse, InferError>>,
+    ),
+    Pose(
+        Box<PoseTask>,
+        oneshot::Sender<Result<PoseResponse, InferError>>,
     ),
 }
 
@@ -110,12 +131,16 @@ impl Job {
     fn cancelled(&self) -> bool {
         match &self.work {
             Work::Detect(_, tx) => tx.is_closed(),
+            Work::Pose(_, tx) => tx.is_closed(),
         }
     }
 
     fn fail(self, e: InferError) {
         match self.work {
             Work::Detect(_, tx) => {
+                let _ = tx.send(Err(e));
+            }
+            Work::Pose(_, tx) => {
                 let _ = tx.send(Err(e));
             }
         }
@@ -258,27 +283,30 @@ impl Infer {
         deadline: Instant,
     ) -> Result<DetectResponse, InferError> {
         let (tx, rx) = oneshot::channel();
-        self.enqueue(
-            permit,
-            Job {
-                work: Work::Detect(task, tx),
-                enqueued: Instant::now(),
-                deadline,
-            },
-        )?;
-        match tokio::time::timeout_at(deadline.into(), rx).await {
-            Ok(Ok(result)) => result,
-            Ok(Err(_)) => Err(InferError::Internal(
-                "the worker dropped the request".into(),
-            )),
-            // Dropping the receiver here tells the worker not to compute it.
-            Err(_) => Err(InferError::DeadlineExceeded),
-        }
+        self.enqueue(permit, Work::Detect(task, tx), deadline)?;
+        wait(rx, deadline).await
+    }
+
+    /// Refines a pose; waits at most until `deadline`.
+    pub async fn pose(
+        &self,
+        permit: Permit,
+        task: PoseTask,
+        deadline: Instant,
+    ) -> Result<PoseResponse, InferError> {
+        let (tx, rx) = oneshot::channel();
+        self.enqueue(permit, Work::Pose(Box::new(task), tx), deadline)?;
+        wait(rx, deadline).await
     }
 
     /// Puts an admitted job in the queue; its permit's place passes to the
     /// job (the worker gives it back when it takes the job).
-    fn enqueue(&self, mut permit: Permit, job: Job) -> Result<(), InferError> {
+    fn enqueue(&self, mut permit: Permit, work: Work, deadline: Instant) -> Result<(), InferError> {
+        let job = Job {
+            work,
+            enqueued: Instant::now(),
+            deadline,
+        };
         let guard = self
             .shared
             .sender
@@ -311,5 +339,20 @@ impl Infer {
         };
         let join = tokio::task::spawn_blocking(move || handle.join().is_ok());
         matches!(tokio::time::timeout(grace, join).await, Ok(Ok(true)))
+    }
+}
+
+/// The worker's answer, or a deadline error when it comes too late.
+async fn wait<T>(
+    rx: oneshot::Receiver<Result<T, InferError>>,
+    deadline: Instant,
+) -> Result<T, InferError> {
+    match tokio::time::timeout_at(deadline.into(), rx).await {
+        Ok(Ok(result)) => result,
+        Ok(Err(_)) => Err(InferError::Internal(
+            "the worker dropped the request".into(),
+        )),
+        // Dropping the receiver here tells the worker not to compute it.
+        Err(_) => Err(InferError::DeadlineExceeded),
     }
 }

@@ -1,6 +1,7 @@
 //! The worker loop: takes a batch off the queue, drops what no longer needs
 //! computing, asks the backend for the batch's pyramids, then runs the
-//! vision layer's detection on each request and answers it.
+//! vision layer's detection (or the pose refinement) of each request and
+//! answers it.
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
@@ -9,11 +10,16 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{InferError, Job, Shared, Work};
+use tokio::sync::oneshot;
+
+use super::{DetectTask, InferError, Job, PoseTask, Shared, Work};
 use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
-use crate::pipeline::{detect_prebuilt_with, feature_settings};
+use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions, DetectResponse};
+use crate::pose::api::{detect_options, estimate_with, PoseResponse};
+use crate::pose::PoseError;
 use crate::vision::detect::DenseBounds;
+use crate::vision::image::ColorImage;
 use crate::vision::pyramid::FeaturePyramid;
 
 /// Runs until the queue's channel is closed and empty.
@@ -39,7 +45,57 @@ pub(super) fn run(rx: Receiver<Job>, mut backend: Box<dyn Backend>, shared: &Sha
     }
 }
 
-/// Computes one batch and answers every request in it.
+/// A live request of a batch and where its answer goes.
+enum Item {
+    Detect(
+        DetectTask,
+        oneshot::Sender<Result<DetectResponse, InferError>>,
+    ),
+    Pose(
+        Box<PoseTask>,
+        oneshot::Sender<Result<PoseResponse, InferError>>,
+    ),
+}
+
+impl Item {
+    /// The image, models and options of the detection this request needs,
+    /// if any (a pose request with `mask: "detect"` needs one).
+    fn detection(&self) -> Option<(&ColorImage, Vec<&Model>, DetectOptions)> {
+        match self {
+            Item::Detect(t, _) => Some((
+                &t.image,
+                t.models.iter().map(|m| m.as_ref()).collect(),
+                t.opts,
+            )),
+            Item::Pose(t, _) => t
+                .model
+                .as_ref()
+                .map(|m| (t.image.as_ref(), vec![m.as_ref()], detect_options())),
+        }
+    }
+
+    fn closed(&self) -> bool {
+        match self {
+            Item::Detect(_, tx) => tx.is_closed(),
+            Item::Pose(_, tx) => tx.is_closed(),
+        }
+    }
+
+    fn fail(self, e: InferError) {
+        match self {
+            Item::Detect(_, tx) => {
+                let _ = tx.send(Err(e));
+            }
+            Item::Pose(_, tx) => {
+                let _ = tx.send(Err(e));
+            }
+        }
+    }
+}
+
+/// Computes one batch and answers every request in it: the backend builds
+/// the pyramids (and bounds) of every detection in the batch, then the
+/// detections and pose refinements run on the rayon pool.
 fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     let now = Instant::now();
     let metrics = &shared.metrics;
@@ -62,48 +118,63 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     }
     metrics.batch_size.observe(live.len() as f64);
     let start = Instant::now();
-    let tasks: Vec<_> = live
+    let items: Vec<Item> = live
         .into_iter()
         .map(|job| match job.work {
-            Work::Detect(task, tx) => (task, tx),
+            Work::Detect(task, tx) => Item::Detect(task, tx),
+            Work::Pose(task, tx) => Item::Pose(task, tx),
         })
         .collect();
-    let settings: Vec<_> = tasks
+    let detections: Vec<_> = items.iter().map(Item::detection).collect();
+    let settings: Vec<_> = detections
         .iter()
-        .map(|(t, _)| {
-            let refs: Vec<&Model> = t.models.iter().map(|m| m.as_ref()).collect();
-            feature_settings(&refs)
-        })
+        .map(|d| d.as_ref().map(|(_, models, _)| feature_settings(models)))
         .collect();
-    let jobs: Vec<FeatureJob<'_>> = tasks
+    let jobs: Vec<FeatureJob<'_>> = detections
         .iter()
         .zip(&settings)
-        .map(|((t, _), s)| FeatureJob {
-            image: &t.image,
-            settings: s,
+        .filter_map(|(d, s)| {
+            Some(FeatureJob {
+                image: d.as_ref()?.0,
+                settings: s.as_ref()?,
+            })
         })
         .collect();
-    let pyramids = match catch_unwind(AssertUnwindSafe(|| backend.pyramids(&jobs))) {
-        Ok(p) if p.len() == tasks.len() => p,
-        _ => {
-            for (_, tx) in tasks {
-                metrics.job("failed");
-                let _ = tx.send(Err(InferError::Internal("the backend failed".into())));
+    let built = if jobs.is_empty() {
+        Vec::new()
+    } else {
+        match catch_unwind(AssertUnwindSafe(|| backend.pyramids(&jobs))) {
+            Ok(p) if p.len() == jobs.len() => p,
+            _ => {
+                for item in items {
+                    metrics.job("failed");
+                    item.fail(InferError::Internal("the backend failed".into()));
+                }
+                return;
             }
-            return;
         }
     };
     drop(jobs);
+    // Each request's pyramids, in the batch's order (none where it needs
+    // no detection).
+    let mut built = built.into_iter();
+    let pyramids: Vec<Option<Result<Vec<FeaturePyramid>, InferError>>> = detections
+        .iter()
+        .map(|d| {
+            d.as_ref()
+                .and_then(|_| built.next().map(|r| r.map_err(InferError::from)))
+        })
+        .collect();
     // The stage-1 bounds, where the backend computes them (on this thread,
     // which owns the backend).
-    let bounds: Vec<(Vec<Option<DenseBounds>>, f64)> = tasks
+    let bounds: Vec<(Vec<Option<DenseBounds>>, f64)> = items
         .iter()
+        .zip(&detections)
         .zip(&pyramids)
-        .map(|((task, tx), pyrs)| match pyrs {
-            Ok(pyrs) if task.opts.prune && !tx.is_closed() => {
+        .map(|((item, d), pyrs)| match (d, pyrs) {
+            (Some((_, models, opts)), Some(Ok(pyrs))) if opts.prune && !item.closed() => {
                 let t = Instant::now();
-                let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
-                let b = catch_unwind(AssertUnwindSafe(|| model_bounds(backend, pyrs, &models)))
+                let b = catch_unwind(AssertUnwindSafe(|| model_bounds(backend, pyrs, models)))
                     .unwrap_or_default();
                 (b, t.elapsed().as_secs_f64() * 1e3)
             }
@@ -117,33 +188,62 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
         .backend_info
         .write()
         .unwrap_or_else(|e| e.into_inner()) = backend.info();
-    tasks.into_par_iter().zip(pyramids).zip(bounds).for_each(
-        |(((task, tx), pyrs), (bounds, bounds_ms))| {
-            if tx.is_closed() {
+    drop(detections);
+    items.into_par_iter().zip(pyramids).zip(bounds).for_each(
+        |((item, pyrs), (bounds, bounds_ms))| {
+            if item.closed() {
                 metrics.job("cancelled");
                 return;
             }
-            let result = catch_unwind(AssertUnwindSafe(|| {
-                let pyrs = pyrs.map_err(InferError::from)?;
+            // The detection, on the backend's pyramids.
+            let detect = |models: &[&Model], opts: &DetectOptions| {
+                let pyrs = pyrs.ok_or_else(|| InferError::Internal("no pyramids".into()))??;
                 let refs: Vec<&FeaturePyramid> = pyrs.iter().collect();
-                let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
                 let pre: Vec<Option<&DenseBounds>> = bounds.iter().map(Option::as_ref).collect();
-                let mut resp = detect_prebuilt_with(&refs, &models, &pre, &task.opts)
-                    .map_err(InferError::from)?;
+                let mut resp = detect_prebuilt_with(&refs, models, &pre, opts)?;
                 resp.timing_ms.responses += bounds_ms;
                 resp.timing_ms.total += bounds_ms;
-                Ok(resp)
-            }))
-            .unwrap_or_else(|_| Err(InferError::Internal("detection failed".into())));
-            metrics.job(if result.is_ok() {
-                "completed"
-            } else {
-                "failed"
-            });
+                Ok::<_, InferError>(resp)
+            };
+            let ok = match item {
+                Item::Detect(task, tx) => {
+                    let result = catch_unwind(AssertUnwindSafe(|| {
+                        let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
+                        detect(&models, &task.opts)
+                    }))
+                    .unwrap_or_else(|_| Err(InferError::Internal("detection failed".into())));
+                    let ok = result.is_ok();
+                    let _ = tx.send(result);
+                    ok
+                }
+                Item::Pose(task, tx) => {
+                    let result = catch_unwind(AssertUnwindSafe(|| {
+                        let PoseTask {
+                            image,
+                            mesh,
+                            params,
+                            mask,
+                            model,
+                        } = *task;
+                        let found = match &model {
+                            Some(m) => Some(detect(&[m.as_ref()], &detect_options())?),
+                            None => None,
+                        };
+                        estimate_with(&image, &mesh, &params, mask, |name| {
+                            found.ok_or_else(|| PoseError::UnknownModel(name.to_string()))
+                        })
+                        .map_err(InferError::from)
+                    }))
+                    .unwrap_or_else(|_| Err(InferError::Internal("pose refinement failed".into())));
+                    let ok = result.is_ok();
+                    let _ = tx.send(result);
+                    ok
+                }
+            };
+            metrics.job(if ok { "completed" } else { "failed" });
             metrics
                 .compute_duration
                 .observe(start.elapsed().as_secs_f64());
-            let _ = tx.send(result);
         },
     );
 }

@@ -1,6 +1,6 @@
-//! The pose request and response of `sdhop-train pose` (and of the coming
-//! `POST /pose`): parameters as JSON, the mask from a detection, a client's
-//! PNG or none, and the refined pose with its statistics.
+//! The pose request and response of `POST /pose` and `sdhop-train pose`:
+//! parameters as JSON, the mask from a detection, a client's PNG or none,
+//! and the refined pose with its statistics.
 
 use serde::{Deserialize, Serialize};
 
@@ -9,7 +9,7 @@ use super::irls::{refine, IrlsParams};
 use super::mesh::Mesh;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
-use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
+use crate::pipeline::{detect_image, DetectOptions, DetectResponse, DetectionJson, MaskMode};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 
@@ -21,7 +21,7 @@ pub struct PoseJson {
 }
 
 /// Where OR-IRLS takes its visibility mask from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MaskSource {
     /// The refined mask of the best detection of `model`.
@@ -29,7 +29,6 @@ pub enum MaskSource {
     /// The mask the client sends.
     Provided,
     /// No mask: plain IRLS.
-    #[default]
     None,
 }
 
@@ -42,8 +41,9 @@ pub struct PoseParams {
     /// The detector model whose mask `mask: "detect"` uses.
     #[serde(default)]
     pub model: Option<String>,
+    /// Default: `"provided"` when a mask image is sent, else `"none"`.
     #[serde(default)]
-    pub mask: MaskSource,
+    pub mask: Option<MaskSource>,
     #[serde(default)]
     pub max_iterations: Option<usize>,
 }
@@ -80,9 +80,85 @@ pub struct PoseResponse {
     pub detection: Option<DetectionJson>,
 }
 
+/// The detection options of `mask: "detect"`: the best detection, with its
+/// refined mask.
+pub fn detect_options() -> DetectOptions {
+    DetectOptions {
+        max_detections: Some(1),
+        masks: MaskMode::Refined,
+        ..DetectOptions::default()
+    }
+}
+
+/// A pose request checked before any work: the initial pose (projected to
+/// a rotation), the refinement settings and where the mask comes from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checked {
+    pub initial: Pose,
+    pub irls: IrlsParams,
+    pub source: MaskSource,
+}
+
+impl PoseParams {
+    /// Checks the parameters against the image's size and the mask the
+    /// client sent (if any). Without an explicit `mask`, a sent mask is
+    /// used and otherwise none; a sent mask with `mask` other than
+    /// `"provided"` is refused rather than ignored.
+    pub fn check(
+        &self,
+        image_size: (usize, usize),
+        mask: Option<&Mask>,
+    ) -> Result<Checked, PoseError> {
+        let initial = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)?;
+        self.intrinsics.validate()?;
+        let mut irls = IrlsParams::default();
+        if let Some(n) = self.max_iterations {
+            irls.max_iterations = n;
+        }
+        irls.validate()?;
+        let source = self.mask.unwrap_or(if mask.is_some() {
+            MaskSource::Provided
+        } else {
+            MaskSource::None
+        });
+        match (source, mask) {
+            (MaskSource::Provided, None) => {
+                return Err(PoseError::InvalidParameter(
+                    "mask \"provided\" needs a mask image".into(),
+                ))
+            }
+            (MaskSource::Provided, Some(m)) => {
+                if (m.width, m.height) != image_size {
+                    return Err(PoseError::InvalidParameter(format!(
+                        "the mask is {}x{}, the image {}x{}",
+                        m.width, m.height, image_size.0, image_size.1
+                    )));
+                }
+            }
+            (other, Some(_)) => {
+                return Err(PoseError::InvalidParameter(format!(
+                    "a mask image was sent but the parameters ask for mask {:?}",
+                    other
+                )))
+            }
+            (_, None) => {}
+        }
+        if source == MaskSource::Detect && self.model.is_none() {
+            return Err(PoseError::InvalidParameter(
+                "mask \"detect\" needs a model name".into(),
+            ));
+        }
+        Ok(Checked {
+            initial,
+            irls,
+            source,
+        })
+    }
+}
+
 /// Estimates the pose of `mesh` in `img` as `params` ask; `mask` is the
-/// client's mask (needed with `mask: "provided"`), `models` the loaded
-/// detector models (one is needed by name with `mask: "detect"`).
+/// client's mask, `models` the loaded detector models (one is needed by
+/// name with `mask: "detect"`).
 pub fn estimate(
     img: &ColorImage,
     mesh: &Mesh,
@@ -90,40 +166,36 @@ pub fn estimate(
     mask: Option<Mask>,
     models: &[&Model],
 ) -> Result<PoseResponse, PoseError> {
-    let initial = Pose::from_client(
-        params.initial_pose.rotation,
-        params.initial_pose.translation,
-    )?;
-    params.intrinsics.validate()?;
-    let mut irls = IrlsParams::default();
-    if let Some(n) = params.max_iterations {
-        irls.max_iterations = n;
-    }
-    irls.validate()?;
-    let (mask, used, detection) = match params.mask {
+    estimate_with(img, mesh, params, mask, |name| {
+        let model = models
+            .iter()
+            .find(|m| m.meta.name == name)
+            .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
+        detect_image(img, &[model], &detect_options())
+            .map_err(|e| PoseError::InvalidParameter(e.to_string()))
+    })
+}
+
+/// [`estimate`] with the detection left to `detect`, which runs the named
+/// model on the image with [`detect_options`] (the service runs it on its
+/// backend's pyramids).
+pub fn estimate_with<F>(
+    img: &ColorImage,
+    mesh: &Mesh,
+    params: &PoseParams,
+    mask: Option<Mask>,
+    detect: F,
+) -> Result<PoseResponse, PoseError>
+where
+    F: FnOnce(&str) -> Result<DetectResponse, PoseError>,
+{
+    let checked = params.check((img.width(), img.height()), mask.as_ref())?;
+    let (mask, used, detection) = match checked.source {
         MaskSource::None => (None, MaskUsed::None, None),
-        MaskSource::Provided => {
-            let m = mask.ok_or_else(|| {
-                PoseError::InvalidParameter("mask \"provided\" needs a mask image".into())
-            })?;
-            (Some(m), MaskUsed::Provided, None)
-        }
+        MaskSource::Provided => (mask, MaskUsed::Provided, None),
         MaskSource::Detect => {
-            let name = params.model.as_deref().ok_or_else(|| {
-                PoseError::InvalidParameter("mask \"detect\" needs a model name".into())
-            })?;
-            let model = models
-                .iter()
-                .find(|m| m.meta.name == name)
-                .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
-            let opts = DetectOptions {
-                max_detections: Some(1),
-                masks: MaskMode::Refined,
-                ..DetectOptions::default()
-            };
-            let resp = detect_image(img, &[model], &opts)
-                .map_err(|e| PoseError::InvalidParameter(e.to_string()))?;
-            let det = resp
+            let name = params.model.as_deref().unwrap_or_default();
+            let det = detect(name)?
                 .detections
                 .into_iter()
                 .next()
@@ -136,14 +208,14 @@ pub fn estimate(
             (Some(m), MaskUsed::Detected, Some(det))
         }
     };
-    let edges = EdgeModel::new(mesh, irls.crease_degrees);
+    let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
     let r = refine(
         img,
         &edges,
         &params.intrinsics,
-        &initial,
+        &checked.initial,
         mask.as_ref(),
-        &irls,
+        &checked.irls,
     )?;
     Ok(PoseResponse {
         pose: PoseOut {

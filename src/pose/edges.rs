@@ -72,10 +72,11 @@ pub fn rasterize(
         if p.iter().any(|q| q.z <= 1e-6) {
             continue;
         }
-        let s: Vec<Vector2<f64>> = p.iter().filter_map(|q| k.project(q)).collect();
-        if s.len() != 3 {
+        let (Some(s0), Some(s1), Some(s2)) = (k.project(&p[0]), k.project(&p[1]), k.project(&p[2]))
+        else {
             continue;
-        }
+        };
+        let s = [s0, s1, s2];
         let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
         if area.abs() < 1e-12 {
             continue;
@@ -92,7 +93,31 @@ pub fn rasterize(
         let y1 = (y1 as usize).min(height.saturating_sub(1));
         let iz = [1.0 / p[0].z, 1.0 / p[1].z, 1.0 / p[2].z];
         for y in y0..=y1 {
-            for x in x0..=x1 {
+            // Only the row's span of the triangle (thin triangles have
+            // large boxes): where the row's centre line crosses its edges,
+            // widened by a pixel; the barycentric test below decides.
+            let yc = y as f64 + 0.5;
+            let (mut xl, mut xr) = (f64::INFINITY, f64::NEG_INFINITY);
+            for (a, b) in [(s[0], s[1]), (s[1], s[2]), (s[2], s[0])] {
+                let (ylo, yhi) = (a.y.min(b.y), a.y.max(b.y));
+                if yc < ylo || yc > yhi {
+                    continue;
+                }
+                let x = if (b.y - a.y).abs() < 1e-12 {
+                    xl = xl.min(a.x.min(b.x));
+                    a.x.max(b.x)
+                } else {
+                    a.x + (yc - a.y) / (b.y - a.y) * (b.x - a.x)
+                };
+                xl = xl.min(x);
+                xr = xr.max(x);
+            }
+            if xl > xr {
+                continue;
+            }
+            let xs = ((xl - 1.0).floor().max(x0 as f64)) as usize;
+            let xe = ((xr + 1.0).ceil().max(0.0) as usize).min(x1);
+            for x in xs..=xe {
                 let c = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
                 let w0 = (s[1] - c).perp(&(s[2] - c)) / area;
                 let w1 = (s[2] - c).perp(&(s[0] - c)) / area;
@@ -201,7 +226,10 @@ impl EdgeModel {
     }
 
     /// Samples every `step` pixels along the visible projected crease and
-    /// silhouette edges at `pose`, inside the image.
+    /// silhouette edges at `pose`, inside the image. The spacing runs on
+    /// from one edge to the next, so that a dense mesh (edges shorter than
+    /// `step`) gets as many samples as its outline's length asks, not one
+    /// per edge.
     pub fn samples(
         &self,
         k: &Intrinsics,
@@ -211,6 +239,9 @@ impl EdgeModel {
     ) -> Vec<EdgeSample> {
         let mut out = Vec::new();
         let (w, h) = (depth.width as f64, depth.height as f64);
+        // Distance (pixels) from the start of the next edge to its first
+        // sample.
+        let mut next = 0.5 * step;
         for e in &self.edges {
             let use_it = if e.boundary {
                 true
@@ -233,11 +264,17 @@ impl EdgeModel {
                 continue;
             }
             let normal = Vector2::new(-d.y, d.x) / len;
-            let n = (len / step).ceil().max(1.0) as usize;
+            let first = next;
+            let n = if first < len {
+                ((len - first) / step).floor() as usize + 1
+            } else {
+                0
+            };
+            next = first + n as f64 * step - len;
             for i in 0..n {
                 // Parameter along the 3-D edge whose projection is the
                 // 2-D point at fraction f (projection is not linear).
-                let f = (i as f64 + 0.5) / n as f64;
+                let f = (first + i as f64 * step) / len;
                 let s = f * ca.z / (f * ca.z + (1.0 - f) * cb.z);
                 let p3 = a + (b - a) * s;
                 let c3 = pose.transform(&p3);

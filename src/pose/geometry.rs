@@ -116,7 +116,9 @@ impl Pose {
     /// `[w, x, y, z]` of the rotation.
     pub fn quaternion(&self) -> [f64; 4] {
         let q = UnitQuaternion::from_matrix(&self.rotation);
-        [q.w, q.i, q.j, q.k]
+        // q and -q are the same rotation: answer the one with w >= 0.
+        let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+        [s * q.w, s * q.i, s * q.j, s * q.k]
     }
 
     /// Rows of the rotation matrix.

@@ -289,6 +289,34 @@ impl Mesh {
         }
     }
 
+    /// The mesh with each triangle split in four at its edges' midpoints,
+    /// `levels` times (shared midpoints keep it closed): the same surface
+    /// with 4^levels times the triangles, as dense as a scanned mesh.
+    pub fn subdivided(&self, levels: usize) -> Self {
+        let mut mesh = self.clone();
+        for _ in 0..levels {
+            let mut mid: std::collections::HashMap<(u32, u32), u32> =
+                std::collections::HashMap::new();
+            let mut vertices = mesh.vertices.clone();
+            let mut midpoint = |a: u32, b: u32| {
+                *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                    vertices.push((mesh.vertices[a as usize] + mesh.vertices[b as usize]) / 2.0);
+                    (vertices.len() - 1) as u32
+                })
+            };
+            let mut triangles = Vec::with_capacity(4 * mesh.triangles.len());
+            for &[a, b, c] in &mesh.triangles {
+                let (ab, bc, ca) = (midpoint(a, b), midpoint(b, c), midpoint(c, a));
+                triangles.extend([[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]);
+            }
+            mesh = Self {
+                vertices,
+                triangles,
+            };
+        }
+        mesh
+    }
+
     /// The largest distance between two vertices along an axis.
     pub fn extent(&self) -> f64 {
         let mut lo = Vector3::repeat(f64::INFINITY);
@@ -346,6 +374,33 @@ mod tests {
         ];
         for (i, c) in cases.iter().enumerate() {
             assert!(Mesh::parse(c).is_err(), "case {i} was accepted");
+        }
+    }
+
+    #[test]
+    fn subdivision_keeps_the_surface_closed() {
+        let coarse = Mesh::cuboid(0.1, 0.15, 0.08);
+        let fine = coarse.subdivided(3);
+        assert_eq!(fine.triangles.len(), 12 * 64);
+        // Euler's formula of a closed genus-0 surface: V - E + F = 2, with
+        // every edge shared by two triangles (E = 3F/2).
+        let (v, f) = (fine.vertices.len() as i64, fine.triangles.len() as i64);
+        assert_eq!(v - 3 * f / 2 + f, 2);
+        let mut edges = std::collections::HashMap::new();
+        for t in &fine.triangles {
+            for k in 0..3 {
+                let (a, b) = (t[k], t[(k + 1) % 3]);
+                *edges.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+            }
+        }
+        assert!(edges.values().all(|&n| n == 2));
+        // The same box: same extent, and every new vertex on its surface.
+        assert!((fine.extent() - coarse.extent()).abs() < 1e-12);
+        for p in &fine.vertices {
+            let on_face = (p.x.abs() - 0.05).abs() < 1e-12
+                || (p.y.abs() - 0.075).abs() < 1e-12
+                || (p.z.abs() - 0.04).abs() < 1e-12;
+            assert!(on_face, "{p:?} is off the box");
         }
     }
 }

@@ -1,0 +1,208 @@
+//! `POST /pose`: a `multipart/form-data` body with the parts `image` (JPEG
+//! or PNG), `mesh` (OBJ or PLY), optional `mask` (PNG, non-zero pixels are
+//! visible) and `params` (JSON, [`PoseParams`]); answers the refined pose
+//! ([`crate::pose::api::PoseResponse`]). Admission, deadlines and errors
+//! follow `/detect`: 400 malformed body or query, 404 unknown model, 413
+//! too large, 415 not multipart, 422 a mesh, mask, image or parameters
+//! that cannot be used, 503 overloaded or late.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+
+use super::detect::{media_type, multipart_error, timeout_param};
+use super::error::ApiError;
+use super::image::{decode, decode_mask};
+use super::state::AppState;
+use crate::infer::PoseTask;
+use crate::pose::api::{MaskSource, PoseParams};
+use crate::pose::Mesh;
+
+/// The parts of a pose request, as sent.
+#[derive(Default)]
+struct Parts {
+    image: Option<Vec<u8>>,
+    mesh: Option<Vec<u8>>,
+    mask: Option<Vec<u8>>,
+    params: Option<Vec<u8>>,
+}
+
+/// The query of `POST /pose`: only `timeout_ms`.
+fn parse_query(raw: Option<&str>, max_timeout: Duration) -> Result<Option<Duration>, ApiError> {
+    let mut timeout = None;
+    for (k, v) in form_urlencoded::parse(raw.unwrap_or("").as_bytes()) {
+        match k.as_ref() {
+            "timeout_ms" => timeout = Some(timeout_param(&v, max_timeout)?),
+            _ => {
+                return Err(ApiError::BadRequest(format!(
+                    "query parameter {k}={v:?}: unknown parameter"
+                )))
+            }
+        }
+    }
+    Ok(timeout)
+}
+
+/// Reads the multipart body within the route's body limit; unknown or
+/// repeated parts are refused.
+async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
+    match media_type(req.headers()).as_deref() {
+        Some("multipart/form-data") => {}
+        other => {
+            let e = ApiError::UnsupportedMediaType(format!(
+                "send multipart/form-data with the parts image, mesh, params and optionally mask, not {}",
+                other.unwrap_or("a body without Content-Type")
+            ));
+            // Read what was sent (within the limit) so that the client
+            // sees this answer rather than a reset connection.
+            let _ = axum::body::to_bytes(req.into_body(), limit).await;
+            return Err(e);
+        }
+    }
+    let mut mp = Multipart::from_request(req, &())
+        .await
+        .map_err(|e| ApiError::BadRequest(e.body_text()))?;
+    let mut parts = Parts::default();
+    // A refused part is answered once the body is read (within the limit),
+    // so that the client sees the answer rather than a reset connection.
+    let mut refused = None;
+    while let Some(field) = mp
+        .next_field()
+        .await
+        .map_err(|e| multipart_error(&e, limit))?
+    {
+        let name = field.name().unwrap_or_default().to_string();
+        let bytes = field
+            .bytes()
+            .await
+            .map_err(|e| multipart_error(&e, limit))?;
+        let slot = match name.as_str() {
+            "image" => &mut parts.image,
+            "mesh" => &mut parts.mesh,
+            "mask" => &mut parts.mask,
+            "params" => &mut parts.params,
+            _ => {
+                refused.get_or_insert(format!(
+                    "unknown part {name:?}: expected image, mesh, mask and params"
+                ));
+                continue;
+            }
+        };
+        if slot.is_some() {
+            refused.get_or_insert(format!("the part {name:?} is repeated"));
+        }
+        *slot = Some(bytes.to_vec());
+    }
+    match refused {
+        Some(why) => Err(ApiError::BadRequest(why)),
+        None => Ok(parts),
+    }
+}
+
+/// The `params` part: 400 when it is not JSON, 422 when it is JSON of the
+/// wrong shape.
+fn parse_params(bytes: &[u8]) -> Result<PoseParams, ApiError> {
+    serde_json::from_slice(bytes).map_err(|e| {
+        let msg = format!("params: {e}");
+        if e.is_data() {
+            ApiError::Unprocessable(msg)
+        } else {
+            ApiError::BadRequest(msg)
+        }
+    })
+}
+
+/// `POST /pose`.
+pub async fn pose(
+    State(state): State<Arc<AppState>>,
+    RawQuery(raw): RawQuery,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let arrived = Instant::now();
+    let cfg = state.config;
+    // Admission before reading anything, as for /detect.
+    let permit = state.infer.admit()?;
+    let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
+    // The query after the body, so that a client sending a large body
+    // with a bad query reads the 400 rather than a reset connection.
+    let timeout = parse_query(raw.as_deref(), cfg.max_timeout)?;
+    let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
+    let missing =
+        |name: &str| ApiError::BadRequest(format!("the multipart body has no `{name}` part"));
+    let image = parts.image.ok_or_else(|| missing("image"))?;
+    let mesh = parts.mesh.ok_or_else(|| missing("mesh"))?;
+    let params = parse_params(&parts.params.ok_or_else(|| missing("params"))?)?;
+    let model = match (params.mask, &params.model) {
+        (Some(MaskSource::Detect), Some(name)) => Some(Arc::clone(
+            &state
+                .model(name)
+                .ok_or_else(|| ApiError::UnknownModel(name.clone()))?
+                .model,
+        )),
+        _ => None,
+    };
+    let limits = cfg.image;
+    let mask_bytes = parts.mask;
+    let task = tokio::task::spawn_blocking(move || {
+        let image = decode(&image, &limits)?;
+        let mask = mask_bytes.map(|b| decode_mask(&b, &limits)).transpose()?;
+        // Checked here so that a bad request is refused before it queues.
+        params.check((image.width(), image.height()), mask.as_ref())?;
+        let mesh = Mesh::parse(&mesh)?;
+        Ok::<_, ApiError>(PoseTask {
+            image: Arc::new(image),
+            mesh,
+            params,
+            mask,
+            model,
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
+    let resp = state.infer.pose(permit, task, deadline).await?;
+    Ok(Json(resp).into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_syntax_is_400_and_shape_is_422() {
+        assert!(matches!(
+            parse_params(b"{\"intrinsics\":"),
+            Err(ApiError::BadRequest(_))
+        ));
+        assert!(matches!(
+            parse_params(b"{\"intrinsics\": 3}"),
+            Err(ApiError::Unprocessable(_))
+        ));
+        let ok = br#"{"intrinsics":{"fx":500,"fy":500,"cx":320,"cy":240},
+            "initial_pose":{"rotation":[[1,0,0],[0,1,0],[0,0,1]],"translation":[0,0,0.5]}}"#;
+        assert!(parse_params(ok).is_ok());
+    }
+
+    #[test]
+    fn only_timeout_is_a_query_parameter() {
+        let max = Duration::from_secs(10);
+        assert_eq!(
+            parse_query(Some("timeout_ms=250"), max).unwrap(),
+            Some(Duration::from_millis(250))
+        );
+        assert_eq!(parse_query(None, max).unwrap(), None);
+        for bad in [
+            "timeout_ms=0",
+            "timeout_ms=x",
+            "timeout_ms=20000",
+            "model=cup",
+        ] {
+            assert!(
+                matches!(parse_query(Some(bad), max), Err(ApiError::BadRequest(_))),
+                "{bad}"
+            );
+        }
+    }
+}
