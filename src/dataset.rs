@@ -120,22 +120,6 @@ pub fn parse_ko8_bbox(text: &str) -> Option<(f64, f64, f64, f64)> {
     }
 }
 
-/// The tight box `(x0, y0, x1, y1)` (exclusive ends) of a mask's pixels.
-fn tight_box(m: &Mask) -> Option<(usize, usize, usize, usize)> {
-    let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
-    for y in 0..m.height {
-        for x in 0..m.width {
-            if m.get(x, y) {
-                x0 = x0.min(x);
-                y0 = y0.min(y);
-                x1 = x1.max(x + 1);
-                y1 = y1.max(y + 1);
-            }
-        }
-    }
-    (x0 != usize::MAX).then_some((x0, y0, x1, y1))
-}
-
 /// The visible ground truth of a CMU_KO8 test image (NOTES.md): the training
 /// mask cropped to its tight box, resized (nearest) to `round(w) x
 /// round(h)`, placed at `(round(cx - w/2), round(cy - h/2))` and clipped,
@@ -146,7 +130,7 @@ pub fn ko8_visible_mask(
     occluder: &Mask,
 ) -> Option<Mask> {
     let (cx, cy, w, h) = centre_box;
-    let (tx0, ty0, tx1, ty1) = tight_box(train_mask)?;
+    let (tx0, ty0, tx1, ty1) = train_mask.tight_box()?;
     let (cw, ch) = (tx1 - tx0, ty1 - ty0);
     // Python's round() is round-half-even.
     let round = |v: f64| v.round_ties_even() as i64;
@@ -235,7 +219,7 @@ impl Ko8 {
             .join(object)
             .join(format!("{object}_mask.png"));
         let train = load_mask(&train_path)?;
-        if tight_box(&train).is_none() {
+        if train.tight_box().is_none() {
             return Err(invalid(&train_path, "training mask is empty"));
         }
         let dir = self.root.join("single/test").join(object);

@@ -224,3 +224,108 @@ fn cli_refines_a_pose_with_a_given_mask_and_refuses_bad_meshes() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("mesh"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The occlusion benchmark end to end on a few scenes over the CMU_KO8
+/// negatives (skipped where they are absent): the training set it writes
+/// is a COCO file the trainer reads, and the benchmark reports every
+/// method's six errors. Needs `../shared/data/cmu_ko8` (present in CI).
+#[test]
+fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
+    use std::process::Command;
+    let negatives =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/cmu_ko8/negative");
+    if !negatives.is_dir() {
+        eprintln!("skipped: {} is not present", negatives.display());
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("sdhop-pose-bench-{}", std::process::id()));
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let out = Command::new(bin)
+        .args([
+            "pose-data",
+            "--scenes",
+            "3",
+            "--train-backgrounds",
+            "4",
+            "--backgrounds",
+        ])
+        .arg(&negatives)
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for object in ["box", "bottle"] {
+        let loaded = sdhop::dataset::load_coco(&dir.join("coco.json"), &dir, object).unwrap();
+        assert!(loaded.skipped.is_empty(), "{:?}", loaded.skipped);
+        let positives: Vec<_> = loaded
+            .samples
+            .iter()
+            .filter_map(|s| s.annotation.as_ref())
+            .collect();
+        assert_eq!(positives.len(), 3);
+        // The full box holds the visible pixels.
+        for a in positives {
+            let (x0, y0, x1, y1) = a.visible.tight_box().unwrap();
+            let (x, y, w, h) = a.bbox;
+            assert!(x <= x0 as f64 && y <= y0 as f64 && x + w >= x1 as f64 && y + h >= y1 as f64);
+        }
+        assert_eq!(
+            loaded.samples.len(),
+            3 + 3 + 4,
+            "3 of each object and 4 negatives"
+        );
+    }
+    let report = dir.join("report.json");
+    let out = Command::new(bin)
+        .args([
+            "pose-bench",
+            "--scenes",
+            "2",
+            "--train-backgrounds",
+            "4",
+            "--backgrounds",
+        ])
+        .arg(&negatives)
+        .arg("--models-dir")
+        .arg(dir.join("no-models"))
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let results = doc["results"].as_array().unwrap();
+    assert_eq!(results.len(), 4, "two objects, two conditions");
+    for r in results {
+        let summaries = r["summaries"].as_array().unwrap();
+        let methods: Vec<&str> = summaries
+            .iter()
+            .map(|s| s["method"].as_str().unwrap())
+            .collect();
+        assert_eq!(
+            methods,
+            ["irls", "or_irls_exact"],
+            "no detector models: no SD-HOP mask"
+        );
+        for s in summaries {
+            let e = s["mean_errors"].as_array().unwrap();
+            assert_eq!(e.len(), 6);
+            assert!(e.iter().all(|v| v.as_f64().unwrap().is_finite()));
+        }
+        if r["occlusion"][1].as_f64().unwrap() > 0.0 {
+            let hidden = r["mean_hidden"].as_f64().unwrap();
+            assert!((0.2..=0.6).contains(&hidden), "{hidden}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -378,6 +378,50 @@ struct PoseArgs {
     max_pixels: usize,
 }
 
+#[derive(clap::Args)]
+struct PoseBackgrounds {
+    /// Folder of background photographs (JPEG or PNG, resized to 640x480),
+    /// e.g. the CMU_KO8 negatives.
+    #[arg(long)]
+    backgrounds: PathBuf,
+    /// The first N backgrounds (by name) are for training; the benchmark
+    /// renders over the others.
+    #[arg(long, default_value_t = 50)]
+    train_backgrounds: usize,
+    /// Objects (default both: box, bottle).
+    #[arg(long, value_delimiter = ',')]
+    objects: Vec<String>,
+}
+
+#[derive(clap::Args)]
+struct PoseDataArgs {
+    #[command(flatten)]
+    bg: PoseBackgrounds,
+    /// Training renders per object (a third unoccluded, the rest 10-60%
+    /// hidden).
+    #[arg(long, default_value_t = 120)]
+    scenes: usize,
+    /// Folder for `coco.json` and `images/`.
+    #[arg(long, default_value = "out/pose-data")]
+    out: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct PoseBenchArgs {
+    #[command(flatten)]
+    bg: PoseBackgrounds,
+    /// Scenes per object and condition (unoccluded; 20-60% hidden).
+    #[arg(long, default_value_t = 40)]
+    scenes: usize,
+    /// Detector models of the objects (trained on `pose-data`); without
+    /// them the SD-HOP mask is left out.
+    #[arg(long, default_value = "out/pose-data/models")]
+    models_dir: PathBuf,
+    /// Write every outcome and the summaries here as JSON.
+    #[arg(long)]
+    report: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Train one model per object (CMU_KO8 or a COCO-style file) and save
@@ -397,6 +441,13 @@ enum Command {
     /// a detected or given visibility mask, or plain IRLS); prints the JSON
     /// of `POST /pose`.
     Pose(PoseArgs),
+    /// Render the pose benchmark's objects over training backgrounds as a
+    /// COCO training set (full boxes, visible masks) for `train --coco`.
+    PoseData(PoseDataArgs),
+    /// The occlusion pose benchmark: IRLS, OR-IRLS with the exact mask and
+    /// OR-IRLS with the SD-HOP mask on held-out backgrounds; six mean
+    /// errors and success rates.
+    PoseBench(PoseBenchArgs),
     /// Generate a synthetic occluded scene and a hand-built model of its object,
     /// detect, and report box and mask accuracy against the exact truth.
     Demo(DemoArgs),
@@ -528,6 +579,214 @@ fn run_pose(args: &PoseArgs) -> Result<(), Failure> {
         "{}",
         serde_json::to_string_pretty(&resp).map_err(Failure::io)?
     );
+    Ok(())
+}
+
+impl PoseBackgrounds {
+    /// The chosen objects and the background files: training ones, then
+    /// the benchmark's.
+    #[allow(clippy::type_complexity)]
+    fn load(
+        &self,
+    ) -> Result<
+        (
+            Vec<sdhop::pose::bench::BenchObject>,
+            Vec<PathBuf>,
+            Vec<PathBuf>,
+        ),
+        Failure,
+    > {
+        let mut objects = sdhop::pose::bench::objects();
+        if !self.objects.is_empty() {
+            for name in &self.objects {
+                if !objects.iter().any(|o| o.name == name) {
+                    return Err(Failure::input(format!(
+                        "no benchmark object {name:?} (box, bottle)"
+                    )));
+                }
+            }
+            objects.retain(|o| self.objects.iter().any(|n| n == o.name));
+        }
+        let dir = &self.backgrounds;
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
+                    matches!(x.to_ascii_lowercase().as_str(), "jpg" | "jpeg" | "png")
+                })
+            })
+            .collect();
+        files.sort();
+        if files.len() <= self.train_backgrounds {
+            return Err(Failure::input(format!(
+                "{}: {} images, more than --train-backgrounds {} are needed",
+                dir.display(),
+                files.len(),
+                self.train_backgrounds
+            )));
+        }
+        let test = files.split_off(self.train_backgrounds);
+        Ok((objects, files, test))
+    }
+}
+
+/// A background photograph at the benchmark's 640x480.
+fn background_image(path: &Path) -> Result<ColorImage, Failure> {
+    let img = image::open(path)
+        .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?
+        .to_rgb8();
+    let img = if img.dimensions() == (640, 480) {
+        img
+    } else {
+        image::imageops::resize(&img, 640, 480, image::imageops::FilterType::Triangle)
+    };
+    ColorImage::from_rgb8(&img).map_err(Failure::input)
+}
+
+fn run_pose_data(args: &PoseDataArgs) -> Result<(), Failure> {
+    use sdhop::pose::bench::{scene, BenchSettings};
+    let (objects, train, _) = args.bg.load()?;
+    let images_dir = args.out.join("images");
+    std::fs::create_dir_all(&images_dir)
+        .map_err(|e| Failure::io(format!("{}: {e}", images_dir.display())))?;
+    let settings = BenchSettings::default();
+    let mut images = Vec::new();
+    let mut annotations = Vec::new();
+    let categories: Vec<_> = objects
+        .iter()
+        .enumerate()
+        .map(|(i, o)| serde_json::json!({"id": i + 1, "name": o.name}))
+        .collect();
+    let backgrounds: Vec<ColorImage> = train
+        .iter()
+        .map(|p| background_image(p))
+        .collect::<Result<_, _>>()?;
+    for (ci, object) in objects.iter().enumerate() {
+        for i in 0..args.scenes {
+            let occlusion = if i % 3 == 0 { (0.0, 0.0) } else { (0.1, 0.6) };
+            let seed = 1_000_000 * (ci as u64 + 1) + i as u64;
+            let bg = &backgrounds[i % backgrounds.len()];
+            let s = scene(object, bg, occlusion, &settings, seed).map_err(Failure::input)?;
+            let name = format!("{}_{i:04}.jpg", object.name);
+            let path = images_dir.join(&name);
+            s.scene
+                .image
+                .to_rgb8()
+                .save(&path)
+                .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+            let id = images.len() + 1;
+            images.push(serde_json::json!({
+                "id": id, "file_name": format!("images/{name}"), "width": 640, "height": 480
+            }));
+            let (x, y, w, h) = s.full_box;
+            annotations.push(serde_json::json!({
+                "id": annotations.len() + 1,
+                "image_id": id,
+                "category_id": ci + 1,
+                "bbox": [x, y, w, h],
+                "segmentation": s.scene.visible.to_rle(),
+            }));
+        }
+    }
+    // The training backgrounds themselves are the negatives, referred to
+    // where they are (absolute paths): nothing third-party is copied.
+    for p in &train {
+        let abs =
+            std::fs::canonicalize(p).map_err(|e| Failure::io(format!("{}: {e}", p.display())))?;
+        images.push(serde_json::json!({
+            "id": images.len() + 1, "file_name": abs, "width": 640, "height": 480
+        }));
+    }
+    let coco = serde_json::json!({
+        "images": images, "categories": categories, "annotations": annotations,
+        "info": {"description": "sdhop pose benchmark training renders", "settings": settings}
+    });
+    let path = args.out.join("coco.json");
+    std::fs::write(&path, serde_json::to_string(&coco).map_err(Failure::io)?)
+        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+    println!(
+        "{} renders of {} objects and {} negatives -> {}",
+        annotations.len(),
+        objects.len(),
+        train.len(),
+        path.display()
+    );
+    Ok(())
+}
+
+fn run_pose_bench(args: &PoseBenchArgs) -> Result<(), Failure> {
+    use sdhop::pose::bench::{evaluate, scene, summarize, BenchSettings, Method};
+    use sdhop::pose::EdgeModel;
+    let (objects, _, test) = args.bg.load()?;
+    let settings = BenchSettings::default();
+    let detectors: Vec<Model> = if args.models_dir.is_dir() {
+        load_model_dir(&args.models_dir)?
+    } else {
+        eprintln!(
+            "{}: no models, so no SD-HOP mask (train them: see the README)",
+            args.models_dir.display()
+        );
+        Vec::new()
+    };
+    let backgrounds: Vec<ColorImage> = test
+        .iter()
+        .map(|p| background_image(p))
+        .collect::<Result<_, _>>()?;
+    let mut report = Vec::new();
+    println!(
+        "| object | hidden | method | X mm | Y mm | Z mm | roll ° | pitch ° | yaw ° | angle ° mean / median | distance mm mean / median | success | failed | ms |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for (ci, object) in objects.iter().enumerate() {
+        let edges = EdgeModel::new(
+            &object.mesh,
+            sdhop::pose::IrlsParams::default().crease_degrees,
+        );
+        let detector = detectors.iter().find(|m| m.meta.name == object.name);
+        for (label, occlusion) in [("0%", (0.0, 0.0)), ("20-60%", (0.2, 0.6))] {
+            let mut outcomes = Vec::new();
+            let mut hidden = 0.0;
+            for i in 0..args.scenes {
+                let seed = 7_000_000 * (ci as u64 + 1) + i as u64;
+                let bg = &backgrounds[i % backgrounds.len()];
+                let s = scene(object, bg, occlusion, &settings, seed).map_err(Failure::input)?;
+                hidden += s.scene.occluded_fraction / args.scenes as f64;
+                outcomes.extend(evaluate(&edges, &s, detector, &settings));
+            }
+            let mut summaries = Vec::new();
+            for method in [Method::Irls, Method::OrIrlsExact, Method::OrIrlsSdhop] {
+                let Some(s) = summarize(&outcomes, method) else {
+                    continue;
+                };
+                let e = s.mean_errors;
+                println!(
+                    "| {} | {label} (mean {:.0}%) | {:?} | {:.1} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} / {:.2} | {:.1} / {:.1} | {:.0}% | {} | {:.0} |",
+                    object.name,
+                    100.0 * hidden,
+                    method,
+                    e[0], e[1], e[2], e[3], e[4], e[5],
+                    s.mean_angle_degrees,
+                    s.median_angle_degrees,
+                    s.mean_distance_mm,
+                    s.median_distance_mm,
+                    100.0 * s.success_rate,
+                    s.failed,
+                    s.mean_total_ms
+                );
+                summaries.push(s);
+            }
+            report.push(serde_json::json!({
+                "object": object.name, "occlusion": occlusion, "mean_hidden": hidden,
+                "summaries": summaries, "outcomes": outcomes,
+            }));
+        }
+    }
+    if let Some(p) = &args.report {
+        let doc = serde_json::json!({"settings": settings, "results": report});
+        std::fs::write(p, serde_json::to_string_pretty(&doc).map_err(Failure::io)?)
+            .map_err(|e| Failure::io(format!("{}: {e}", p.display())))?;
+    }
     Ok(())
 }
 
@@ -969,6 +1228,8 @@ fn main() -> ExitCode {
         Command::Annotate(a) => run_annotate(a),
         Command::Detect(a) => run_detect(a),
         Command::Pose(a) => run_pose(a),
+        Command::PoseData(a) => run_pose_data(a),
+        Command::PoseBench(a) => run_pose_bench(a),
         Command::Demo(a) => run_demo(a),
     };
     match result {

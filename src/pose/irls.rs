@@ -166,17 +166,26 @@ impl Gradients {
     }
 }
 
-/// A sample and its image match: the signed distance along the normal.
+/// Edge hypotheses kept per sample.
+const HYPOTHESES: usize = 3;
+
+/// A sample and its image matches: signed distances along the normal of
+/// the strongest compatible edges (the strongest first). Each Gauss-Newton
+/// step uses the one nearest to the model's current projection (multiple
+/// hypotheses, as Choi and Christensen): a strong edge of the clutter
+/// next to the object's own edge does not capture the sample for good.
 #[derive(Clone, Copy, Debug)]
 struct Match {
     sample: EdgeSample,
     /// Match position minus sample position, along the normal (pixels).
-    offset: f64,
+    offsets: [f64; HYPOTHESES],
+    count: usize,
 }
 
-/// Searches along the sample's normal for the strongest compatible edge,
-/// with a parabolic sub-pixel refinement; ties go to the nearer one.
-fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<f64> {
+/// Searches along the sample's normal for the strongest compatible edges
+/// (local maxima of the gradient along the normal, up to [`HYPOTHESES`]),
+/// each with a parabolic sub-pixel refinement; ties go to the nearer one.
+fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTHESES], usize)> {
     let range = p.search_range.round() as i64;
     let cos_max = p.max_angle_degrees.to_radians().cos();
     let strength = |t: f64| -> f64 {
@@ -194,24 +203,42 @@ fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<f64> {
             None => 0.0,
         }
     };
-    let mut best: Option<(f64, i64)> = None;
-    for k in 0..=2 * range {
-        // 0, 1, -1, 2, -2, ...: nearer offsets first, so ties keep them.
-        let t = if k % 2 == 1 { (k + 1) / 2 } else { -(k / 2) };
-        let v = strength(t as f64);
-        if v > 0.0 && best.is_none_or(|(b, _)| v > b) {
-            best = Some((v, t));
-        }
+    let values: Vec<f64> = (-range - 1..=range + 1)
+        .map(|t| strength(t as f64))
+        .collect();
+    let at = |t: i64| values[(t + range + 1) as usize];
+    // Local maxima, strongest first (nearer first among equals).
+    let mut peaks: Vec<(f64, i64)> = (-range..=range)
+        .filter(|&t| {
+            let v = at(t);
+            v > 0.0
+                && v >= at(t - 1)
+                && v >= at(t + 1)
+                && !(v == at(t - 1) && t > 0)
+                && !(v == at(t + 1) && t < 0)
+        })
+        .map(|t| (at(t), t))
+        .collect();
+    if peaks.is_empty() {
+        return None;
     }
-    let (v0, t) = best?;
-    let (vm, vp) = (strength(t as f64 - 1.0), strength(t as f64 + 1.0));
-    let denom = vm - 2.0 * v0 + vp;
-    let sub = if denom < -1e-12 {
-        (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
-    } else {
-        0.0
-    };
-    Some(t as f64 + sub)
+    peaks.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.abs().cmp(&b.1.abs())));
+    // Only edges of comparable strength compete with the strongest.
+    let floor = 0.5 * peaks[0].0;
+    peaks.retain(|p| p.0 >= floor);
+    let mut out = [0.0; HYPOTHESES];
+    let count = peaks.len().min(HYPOTHESES);
+    for (o, &(v0, t)) in out.iter_mut().zip(&peaks) {
+        let (vm, vp) = (at(t - 1), at(t + 1));
+        let denom = vm - 2.0 * v0 + vp;
+        let sub = if denom < -1e-12 {
+            (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        };
+        *o = t as f64 + sub;
+    }
+    Some((out, count))
 }
 
 fn inside(mask: &Mask, p: &Vector2<f64>) -> bool {
@@ -323,14 +350,24 @@ pub fn refine(
             .samples(k, &pose, &depth, params.sample_step)
             .into_iter()
             .filter_map(|s| {
-                let offset = search(&grads, &s, &round)?;
-                let target = s.pixel + s.normal * offset;
-                if let (Some((_, sm)), Some(mm)) = (&sample_mask, &match_mask) {
-                    if !inside(sm, &s.pixel) || !inside(mm, &target) {
-                        return None;
+                let (found, n) = search(&grads, &s, &round)?;
+                let mut offsets = [0.0; HYPOTHESES];
+                let mut count = 0;
+                for &offset in &found[..n] {
+                    let target = s.pixel + s.normal * offset;
+                    if let (Some((_, sm)), Some(mm)) = (&sample_mask, &match_mask) {
+                        if !inside(sm, &s.pixel) || !inside(mm, &target) {
+                            continue;
+                        }
                     }
+                    offsets[count] = offset;
+                    count += 1;
                 }
-                Some(Match { sample: s, offset })
+                (count > 0).then_some(Match {
+                    sample: s,
+                    offsets,
+                    count,
+                })
             })
             .collect();
         if matches.len() < 6 {
@@ -341,8 +378,20 @@ pub fn refine(
             let rows: Vec<(f64, Vector6<f64>)> = matches
                 .iter()
                 .filter_map(|m| {
-                    let target = m.sample.pixel + m.sample.normal * m.offset;
-                    residual_and_jacobian(k, &pose, &m.sample.point, &m.sample.normal, &target)
+                    // The hypothesis nearest to the current projection.
+                    m.offsets[..m.count]
+                        .iter()
+                        .filter_map(|&o| {
+                            let target = m.sample.pixel + m.sample.normal * o;
+                            residual_and_jacobian(
+                                k,
+                                &pose,
+                                &m.sample.point,
+                                &m.sample.normal,
+                                &target,
+                            )
+                        })
+                        .min_by(|a, b| a.0.abs().total_cmp(&b.0.abs()))
                 })
                 .collect();
             let mut abs: Vec<f64> = rows.iter().map(|(r, _)| r.abs()).collect();

@@ -263,12 +263,46 @@ impl Mesh {
     /// sides: a rounded object whose outline is mostly silhouette edges.
     pub fn cylinder(radius: f64, height: f64, segments: usize) -> Self {
         let n = segments.max(3);
+        let profile: Vec<(f64, f64)> = (0..n)
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / n as f64;
+                (radius * a.cos(), radius * a.sin())
+            })
+            .collect();
+        Self::prism(&profile, height)
+    }
+
+    /// A box `sx` x `sy` x `sz` whose four edges along z are rounded with
+    /// radius `r` (`segments` facets per quarter circle), centred on the
+    /// origin: a rounded object with a few crease edges (its caps' rims)
+    /// and silhouettes on its rounded sides.
+    pub fn rounded_box(sx: f64, sy: f64, sz: f64, r: f64, segments: usize) -> Self {
+        let r = r.clamp(0.0, sx.min(sy) / 2.0);
+        let (hx, hy) = (sx / 2.0 - r, sy / 2.0 - r);
+        let m = segments.max(1);
+        let mut profile = Vec::with_capacity(4 * (m + 1));
+        for (q, (cx, cy)) in [(hx, hy), (-hx, hy), (-hx, -hy), (hx, -hy)]
+            .into_iter()
+            .enumerate()
+        {
+            for k in 0..=m {
+                let a = std::f64::consts::FRAC_PI_2 * (q as f64 + k as f64 / m as f64);
+                profile.push((cx + r * a.cos(), cy + r * a.sin()));
+            }
+        }
+        Self::prism(&profile, sz)
+    }
+
+    /// The prism of a convex `profile` (counter-clockwise in the x-y
+    /// plane) from `z = -height/2` to `height/2`, closed by fans from the
+    /// caps' centres.
+    fn prism(profile: &[(f64, f64)], height: f64) -> Self {
+        let n = profile.len();
         let h = height / 2.0;
         let mut vertices = Vec::with_capacity(2 * n + 2);
         for z in [-h, h] {
-            for k in 0..n {
-                let a = std::f64::consts::TAU * k as f64 / n as f64;
-                vertices.push(Vector3::new(radius * a.cos(), radius * a.sin(), z));
+            for &(x, y) in profile {
+                vertices.push(Vector3::new(x, y, z));
             }
         }
         vertices.push(Vector3::new(0.0, 0.0, -h));

@@ -6,6 +6,7 @@
 //! or GPU API.
 
 pub mod api;
+pub mod bench;
 pub mod edges;
 pub mod geometry;
 pub mod irls;

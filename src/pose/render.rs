@@ -38,15 +38,30 @@ pub fn render(
     let (w, h) = (background.width(), background.height());
     let raster = rasterize(&mesh.vertices, &mesh.triangles, k, pose, w, h);
     let light = Vector3::new(-0.4, -0.5, -0.77).normalize();
-    let shade: Vec<f32> = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-            let n = pose.rotation * (b - a).cross(&(c - a)).normalize();
-            (40.0 + 200.0 * n.dot(&light).abs()) as f32
-        })
-        .collect();
+    let corners = corner_normals(mesh, SMOOTH_DEGREES);
+    let cam: Vec<Vector3<f64>> = mesh.vertices.iter().map(|v| pose.transform(v)).collect();
+    // Lambert shading of the normal interpolated over the triangle (Phong
+    // normals): smooth across the facets of a rounded surface, a step at
+    // a crease.
+    let shade = |f: usize, x: usize, y: usize| -> f32 {
+        let t = mesh.triangles[f];
+        let p = t.map(|i| cam[i as usize]);
+        let s = p.map(|q| k.project(&q).unwrap_or_default());
+        let c = nalgebra::Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+        let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
+        let (w0, w1) = if area.abs() < 1e-12 {
+            (1.0 / 3.0, 1.0 / 3.0)
+        } else {
+            (
+                (s[1] - c).perp(&(s[2] - c)) / area,
+                (s[2] - c).perp(&(s[0] - c)) / area,
+            )
+        };
+        let w = [w0, w1, 1.0 - w0 - w1].map(|v| v.clamp(0.0, 1.0));
+        let n = corners[f][0] * w[0] + corners[f][1] * w[1] + corners[f][2] * w[2];
+        let n = pose.rotation * n.try_normalize(1e-12).unwrap_or_else(Vector3::z);
+        (40.0 + 200.0 * n.dot(&light).abs()) as f32
+    };
     let mut rng = SplitMix64::new(seed);
     let mut data = background.data().to_vec();
     let mut object = Mask::new(w, h);
@@ -54,7 +69,7 @@ pub fn render(
         let f = raster.face[i];
         if f != u32::MAX {
             object.set(i % w, i / w, true);
-            let s = shade[f as usize];
+            let s = shade(f as usize, i % w, i / w);
             data[i * 3] = s;
             data[i * 3 + 1] = s * 0.9;
             data[i * 3 + 2] = s * 0.8;
@@ -65,17 +80,7 @@ pub fn render(
     if occlude > 0.0 && area > 0 {
         // The object's pixel box; a strip from one side covering `occlude`
         // of the box's extent, filled with a random colour and stripes.
-        let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
-        for y in 0..h {
-            for x in 0..w {
-                if object.get(x, y) {
-                    x0 = x0.min(x);
-                    y0 = y0.min(y);
-                    x1 = x1.max(x + 1);
-                    y1 = y1.max(y + 1);
-                }
-            }
-        }
+        let (x0, y0, x1, y1) = object.tight_box().unwrap_or((0, 0, w, h));
         let side = rng.range_usize(0, 4);
         let base = [
             rng.range_f64(20.0, 235.0) as f32,
@@ -127,6 +132,47 @@ pub fn render(
         visible,
         occluded_fraction,
     })
+}
+
+/// Faces meeting at less than this (degrees) are shaded as one smooth
+/// surface.
+const SMOOTH_DEGREES: f64 = 30.0;
+
+/// Each triangle's normals at its corners: the mean of the normals of the
+/// triangles around the corner that turn by less than `degrees` from it.
+fn corner_normals(mesh: &Mesh, degrees: f64) -> Vec<[Vector3<f64>; 3]> {
+    let normals: Vec<Vector3<f64>> = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            (b - a)
+                .cross(&(c - a))
+                .try_normalize(1e-300)
+                .unwrap_or_else(Vector3::zeros)
+        })
+        .collect();
+    let mut around: Vec<Vec<u32>> = vec![Vec::new(); mesh.vertices.len()];
+    for (f, t) in mesh.triangles.iter().enumerate() {
+        for &v in t {
+            around[v as usize].push(f as u32);
+        }
+    }
+    let cos = degrees.to_radians().cos();
+    mesh.triangles
+        .iter()
+        .enumerate()
+        .map(|(f, t)| {
+            t.map(|v| {
+                let sum: Vector3<f64> = around[v as usize]
+                    .iter()
+                    .map(|&g| normals[g as usize])
+                    .filter(|n| n.dot(&normals[f]) >= cos)
+                    .sum();
+                sum.try_normalize(1e-300).unwrap_or(normals[f])
+            })
+        })
+        .collect()
 }
 
 /// A textured background: smooth gradients and blocks (no strong edges

@@ -37,6 +37,23 @@ impl Mask {
         self.data.iter().filter(|&&v| v != 0).count()
     }
 
+    /// The tight box `(x0, y0, x1, y1)` (exclusive ends) of the mask's
+    /// pixels; `None` when it is empty.
+    pub fn tight_box(&self) -> Option<(usize, usize, usize, usize)> {
+        let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
+        for y in 0..self.height {
+            for x in 0..self.width {
+                if self.get(x, y) {
+                    x0 = x0.min(x);
+                    y0 = y0.min(y);
+                    x1 = x1.max(x + 1);
+                    y1 = y1.max(y + 1);
+                }
+            }
+        }
+        (x0 != usize::MAX).then_some((x0, y0, x1, y1))
+    }
+
     /// Intersection over union with another mask of the same size (1 when
     /// both are empty).
     pub fn iou(&self, other: &Mask) -> f64 {
