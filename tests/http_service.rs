@@ -402,6 +402,11 @@ async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &
     };
     let jpeg_mask = encode(&sc, image::ImageFormat::Jpeg);
     let with_mask = |p: Value| pose_params(&plain.start, p);
+    // The unoccluded image with this mesh, mask and params.
+    let form = |mesh: &[u8], mask: Option<&[u8]>, params: &str| {
+        pose_form(Some(&plain.png), Some(mesh), mask, Some(params))
+    };
+    let ok = || form(&ply, None, &good);
     let cases: Vec<(&str, reqwest::RequestBuilder, u16)> = vec![
         (
             "no mesh part",
@@ -415,51 +420,31 @@ async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &
         ),
         (
             "unknown part",
-            post("").multipart(
-                pose_form(Some(&plain.png), Some(&ply), None, Some(&good)).text("colour", "red"),
-            ),
+            post("").multipart(ok().text("colour", "red")),
             400,
         ),
         (
             "params not JSON",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                None,
-                Some("{\"intr"),
-            )),
+            post("").multipart(form(&ply, None, "{\"intr")),
             400,
         ),
         (
             "unknown query parameter",
-            post("?model=cup").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                None,
-                Some(&good),
-            )),
+            post("?model=cup").multipart(ok()),
             400,
         ),
         (
             "unknown model",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
+            post("").multipart(form(
+                &ply,
                 None,
-                Some(&with_mask(
-                    serde_json::json!({"mask": "detect", "model": "teapot"}),
-                )),
+                &with_mask(serde_json::json!({"mask": "detect", "model": "teapot"})),
             )),
             404,
         ),
         (
             "oversized body",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&vec![b'#'; 5 << 20]),
-                None,
-                Some(&good),
-            )),
+            post("").multipart(form(&vec![b'#'; 5 << 20], None, &good)),
             413,
         ),
         (
@@ -471,87 +456,51 @@ async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &
         ),
         (
             "malformed mesh",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(b"v 0 0 0\nv 1 0 0\nf 1 2 7\n"),
-                None,
-                Some(&good),
-            )),
+            post("").multipart(form(b"v 0 0 0\nv 1 0 0\nf 1 2 7\n", None, &good)),
             422,
         ),
         (
             "non-finite mesh",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n"),
-                None,
-                Some(&good),
-            )),
+            post("").multipart(form(b"v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n", None, &good)),
             422,
         ),
         (
             "truncated binary PLY",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&mesh.to_ply(true)[..200]),
-                None,
-                Some(&good),
-            )),
+            post("").multipart(form(&mesh.to_ply(true)[..200], None, &good)),
             422,
         ),
         (
             "rotation far from orthonormal",
-            post("").multipart(pose_form(Some(&plain.png), Some(&ply), None, Some(&skewed))),
+            post("").multipart(form(&ply, None, &skewed)),
             422,
         ),
         (
             "params of the wrong shape",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                None,
-                Some("{\"intrinsics\": [1, 2]}"),
-            )),
+            post("").multipart(form(&ply, None, "{\"intrinsics\": [1, 2]}")),
             422,
         ),
         (
             "mask of another size",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                Some(&tiny_mask),
-                Some(&good),
-            )),
+            post("").multipart(form(&ply, Some(&tiny_mask), &good)),
             422,
         ),
         (
             "mask not a PNG",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                Some(&jpeg_mask),
-                Some(&good),
-            )),
+            post("").multipart(form(&ply, Some(&jpeg_mask), &good)),
             422,
         ),
         (
             "mask asked for but not sent",
-            post("").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
+            post("").multipart(form(
+                &ply,
                 None,
-                Some(&with_mask(serde_json::json!({"mask": "provided"}))),
+                &with_mask(serde_json::json!({"mask": "provided"})),
             )),
             422,
         ),
         (
             "deadline passes",
-            post("?timeout_ms=1").multipart(pose_form(
-                Some(&plain.png),
-                Some(&ply),
-                None,
-                Some(&good),
-            )),
+            post("?timeout_ms=1").multipart(ok()),
             503,
         ),
     ];

@@ -126,17 +126,18 @@ struct Job {
     deadline: Instant,
 }
 
-impl Job {
-    /// The caller stopped waiting (disconnected or timed out).
-    fn cancelled(&self) -> bool {
-        match &self.work {
+impl Work {
+    /// The caller stopped waiting: its reply channel is closed.
+    fn closed(&self) -> bool {
+        match self {
             Work::Detect(_, tx) => tx.is_closed(),
             Work::Pose(_, tx) => tx.is_closed(),
         }
     }
 
+    /// Answers the request with an error.
     fn fail(self, e: InferError) {
-        match self.work {
+        match self {
             Work::Detect(_, tx) => {
                 let _ = tx.send(Err(e));
             }

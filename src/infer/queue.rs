@@ -10,13 +10,11 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use tokio::sync::oneshot;
-
-use super::{DetectTask, InferError, Job, PoseTask, Shared, Work};
+use super::{InferError, Job, PoseTask, Shared, Work};
 use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
-use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions, DetectResponse};
-use crate::pose::api::{detect_options, estimate_with, PoseResponse};
+use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions};
+use crate::pose::api::{detect_options, estimate_with};
 use crate::pose::PoseError;
 use crate::vision::detect::DenseBounds;
 use crate::vision::image::ColorImage;
@@ -45,50 +43,20 @@ pub(super) fn run(rx: Receiver<Job>, mut backend: Box<dyn Backend>, shared: &Sha
     }
 }
 
-/// A live request of a batch and where its answer goes.
-enum Item {
-    Detect(
-        DetectTask,
-        oneshot::Sender<Result<DetectResponse, InferError>>,
-    ),
-    Pose(
-        Box<PoseTask>,
-        oneshot::Sender<Result<PoseResponse, InferError>>,
-    ),
-}
-
-impl Item {
+impl Work {
     /// The image, models and options of the detection this request needs,
     /// if any (a pose request with `mask: "detect"` needs one).
     fn detection(&self) -> Option<(&ColorImage, Vec<&Model>, DetectOptions)> {
         match self {
-            Item::Detect(t, _) => Some((
+            Work::Detect(t, _) => Some((
                 &t.image,
                 t.models.iter().map(|m| m.as_ref()).collect(),
                 t.opts,
             )),
-            Item::Pose(t, _) => t
+            Work::Pose(t, _) => t
                 .model
                 .as_ref()
                 .map(|m| (t.image.as_ref(), vec![m.as_ref()], detect_options())),
-        }
-    }
-
-    fn closed(&self) -> bool {
-        match self {
-            Item::Detect(_, tx) => tx.is_closed(),
-            Item::Pose(_, tx) => tx.is_closed(),
-        }
-    }
-
-    fn fail(self, e: InferError) {
-        match self {
-            Item::Detect(_, tx) => {
-                let _ = tx.send(Err(e));
-            }
-            Item::Pose(_, tx) => {
-                let _ = tx.send(Err(e));
-            }
         }
     }
 }
@@ -101,11 +69,11 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     let metrics = &shared.metrics;
     let mut live = Vec::with_capacity(batch.len());
     for job in batch {
-        if job.cancelled() {
+        if job.work.closed() {
             metrics.job("cancelled");
         } else if now >= job.deadline {
             metrics.job("expired");
-            job.fail(InferError::DeadlineExceeded);
+            job.work.fail(InferError::DeadlineExceeded);
         } else {
             metrics
                 .queue_duration
@@ -118,14 +86,8 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     }
     metrics.batch_size.observe(live.len() as f64);
     let start = Instant::now();
-    let items: Vec<Item> = live
-        .into_iter()
-        .map(|job| match job.work {
-            Work::Detect(task, tx) => Item::Detect(task, tx),
-            Work::Pose(task, tx) => Item::Pose(task, tx),
-        })
-        .collect();
-    let detections: Vec<_> = items.iter().map(Item::detection).collect();
+    let items: Vec<Work> = live.into_iter().map(|job| job.work).collect();
+    let detections: Vec<_> = items.iter().map(Work::detection).collect();
     let settings: Vec<_> = detections
         .iter()
         .map(|d| d.as_ref().map(|(_, models, _)| feature_settings(models)))
@@ -206,7 +168,7 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                 Ok::<_, InferError>(resp)
             };
             let ok = match item {
-                Item::Detect(task, tx) => {
+                Work::Detect(task, tx) => {
                     let result = catch_unwind(AssertUnwindSafe(|| {
                         let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
                         detect(&models, &task.opts)
@@ -216,7 +178,7 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                     let _ = tx.send(result);
                     ok
                 }
-                Item::Pose(task, tx) => {
+                Work::Pose(task, tx) => {
                     let result = catch_unwind(AssertUnwindSafe(|| {
                         let PoseTask {
                             image,

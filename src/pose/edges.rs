@@ -160,17 +160,7 @@ impl EdgeModel {
     /// Finds the mesh's edges; `crease_degrees` is the smallest dihedral
     /// angle of a crease.
     pub fn new(mesh: &Mesh, crease_degrees: f64) -> Self {
-        let normals: Vec<Vector3<f64>> = mesh
-            .triangles
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-                (b - a)
-                    .cross(&(c - a))
-                    .try_normalize(1e-300)
-                    .unwrap_or_else(Vector3::zeros)
-            })
-            .collect();
+        let normals = mesh.face_normals();
         let mut map: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
         for (fi, t) in mesh.triangles.iter().enumerate() {
             for k in 0..3 {

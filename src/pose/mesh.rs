@@ -323,6 +323,21 @@ impl Mesh {
         }
     }
 
+    /// Each triangle's unit normal (counter-clockwise corners face it);
+    /// zero for a degenerate triangle.
+    pub fn face_normals(&self) -> Vec<Vector3<f64>> {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| self.vertices[i as usize]);
+                (b - a)
+                    .cross(&(c - a))
+                    .try_normalize(1e-300)
+                    .unwrap_or_else(Vector3::zeros)
+            })
+            .collect()
+    }
+
     /// The mesh with each triangle split in four at its edges' midpoints,
     /// `levels` times (shared midpoints keep it closed): the same surface
     /// with 4^levels times the triangles, as dense as a scanned mesh.

@@ -141,17 +141,7 @@ const SMOOTH_DEGREES: f64 = 30.0;
 /// Each triangle's normals at its corners: the mean of the normals of the
 /// triangles around the corner that turn by less than `degrees` from it.
 fn corner_normals(mesh: &Mesh, degrees: f64) -> Vec<[Vector3<f64>; 3]> {
-    let normals: Vec<Vector3<f64>> = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-            (b - a)
-                .cross(&(c - a))
-                .try_normalize(1e-300)
-                .unwrap_or_else(Vector3::zeros)
-        })
-        .collect();
+    let normals = mesh.face_normals();
     let mut around: Vec<Vec<u32>> = vec![Vec::new(); mesh.vertices.len()];
     for (f, t) in mesh.triangles.iter().enumerate() {
         for &v in t {
