@@ -10,6 +10,7 @@ use super::mesh::Mesh;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
 use crate::pipeline::{detect_image, DetectOptions, DetectResponse, DetectionJson, MaskMode};
+use crate::vision::detect::box_iou;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 
@@ -80,14 +81,43 @@ pub struct PoseResponse {
     pub detection: Option<DetectionJson>,
 }
 
-/// The detection options of `mask: "detect"`: the best detection, with its
-/// refined mask.
+/// Detections of the named model that `mask: "detect"` chooses among.
+pub const DETECT_CANDIDATES: usize = 5;
+
+/// The detection options of `mask: "detect"`: the best
+/// [`DETECT_CANDIDATES`] detections, with their refined masks.
 pub fn detect_options() -> DetectOptions {
     DetectOptions {
-        max_detections: Some(1),
+        max_detections: Some(DETECT_CANDIDATES),
         masks: MaskMode::Refined,
         ..DetectOptions::default()
     }
+}
+
+/// The detection whose (full-object) box overlaps `expected` most, the
+/// object's box at the initial pose: the client says where the object is,
+/// and the best-scoring detection elsewhere would give a mask of something
+/// else. Among equal overlaps the better score (detections come best
+/// first). `None` when none overlaps it, or none has a refined mask.
+pub fn pick_detection(
+    detections: Vec<DetectionJson>,
+    expected: Option<(f64, f64, f64, f64)>,
+) -> Option<(DetectionJson, Mask)> {
+    let overlap = |d: &DetectionJson| {
+        expected.map_or(1.0, |e| {
+            box_iou((d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height), e)
+        })
+    };
+    let mut best: Option<(f64, DetectionJson)> = None;
+    for d in detections {
+        let o = overlap(&d);
+        if o > 0.0 && d.mask.is_some() && best.as_ref().is_none_or(|(b, _)| o > *b) {
+            best = Some((o, d));
+        }
+    }
+    let (_, det) = best?;
+    let mask = det.mask.as_ref().and_then(Mask::from_rle)?;
+    Some((det, mask))
 }
 
 /// A pose request checked before any work: the initial pose (projected to
@@ -190,25 +220,18 @@ where
     F: FnOnce(&str) -> Result<DetectResponse, PoseError>,
 {
     let checked = params.check((img.width(), img.height()), mask.as_ref())?;
+    let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
     let (mask, used, detection) = match checked.source {
         MaskSource::None => (None, MaskUsed::None, None),
         MaskSource::Provided => (mask, MaskUsed::Provided, None),
         MaskSource::Detect => {
             let name = params.model.as_deref().unwrap_or_default();
-            let det = detect(name)?
-                .detections
-                .into_iter()
-                .next()
-                .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
-            let m = det
-                .mask
-                .as_ref()
-                .and_then(Mask::from_rle)
+            let expected = edges.projected_box(&params.intrinsics, &checked.initial);
+            let (det, m) = pick_detection(detect(name)?.detections, expected)
                 .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
             (Some(m), MaskUsed::Detected, Some(det))
         }
     };
-    let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
     let r = refine(
         img,
         &edges,

@@ -11,6 +11,7 @@ use std::time::Instant;
 use nalgebra::{Rotation3, Vector3};
 use serde::Serialize;
 
+use super::api::{detect_options, pick_detection};
 use super::geometry::{Intrinsics, Pose};
 use super::irls::{refine, IrlsParams};
 use super::mesh::Mesh;
@@ -284,10 +285,11 @@ pub fn evaluate(
     run(Method::OrIrlsExact, Some(&bench.scene.visible), 0.0, false);
     if let Some(model) = detector {
         let t = Instant::now();
-        let mask = detect_image(img, &[model], &super::api::detect_options())
+        let expected = edges.projected_box(&CAMERA, &bench.start);
+        let mask = detect_image(img, &[model], &detect_options())
             .ok()
-            .and_then(|r| r.detections.into_iter().next())
-            .and_then(|d| d.mask.as_ref().and_then(Mask::from_rle));
+            .and_then(|r| pick_detection(r.detections, expected))
+            .map(|(_, m)| m);
         let detect_ms = t.elapsed().as_secs_f64() * 1e3;
         let missed = mask.is_none();
         run(Method::OrIrlsSdhop, mask.as_ref(), detect_ms, missed);

@@ -29,6 +29,11 @@ pub struct EdgeModel {
     triangles: Vec<[u32; 3]>,
     normals: Vec<Vector3<f64>>,
     edges: Vec<Edge>,
+    corners: [Vector3<f64>; 8],
+    /// Closed, consistently wound and facing outwards (positive volume):
+    /// then a face turned away from the camera is never seen, and the
+    /// rasteriser skips it.
+    solid: bool,
 }
 
 /// A point on a visible model edge and where it projects.
@@ -43,19 +48,27 @@ pub struct EdgeSample {
 }
 
 /// Per-pixel depth (camera z) of the nearest surface (infinity where none)
-/// and the triangle seen there.
+/// and the triangle seen there, stored over the window of the image that
+/// the mesh's projection can reach (the rest is empty): filling a whole
+/// image's buffers cost more than drawing a small object.
 #[derive(Clone, Debug)]
 pub struct DepthBuffer {
+    /// The image's size.
     pub width: usize,
     pub height: usize,
-    pub depth: Vec<f32>,
+    /// The window: left, top, width, height (within the image).
+    window: (usize, usize, usize, usize),
+    depth: Vec<f32>,
     /// Index of the nearest triangle; `u32::MAX` where none.
-    pub face: Vec<u32>,
+    face: Vec<u32>,
 }
 
 /// Rasterises the triangles at `pose` at pixel centres, keeping the
 /// nearest (perspective-correct depth); triangles reaching behind the
 /// camera are skipped.
+///
+/// With `cull_back`, triangles facing away from the camera are skipped:
+/// right only for a closed mesh wound outwards (see [`is_solid`]).
 pub fn rasterize(
     vertices: &[Vector3<f64>],
     triangles: &[[u32; 3]],
@@ -63,13 +76,34 @@ pub fn rasterize(
     pose: &Pose,
     width: usize,
     height: usize,
+    cull_back: bool,
 ) -> DepthBuffer {
-    let mut depth = vec![f32::INFINITY; width * height];
-    let mut face = vec![u32::MAX; width * height];
     let cam: Vec<Vector3<f64>> = vertices.iter().map(|v| pose.transform(v)).collect();
+    // The window: the projections of the vertices in front of the camera
+    // (only triangles wholly in front are drawn), within the image.
+    let (mut lo, mut hi) = (
+        Vector2::new(f64::INFINITY, f64::INFINITY),
+        Vector2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
+    );
+    for q in cam.iter().filter(|q| q.z > 1e-6) {
+        if let Some(s) = k.project(q) {
+            lo = lo.inf(&s);
+            hi = hi.sup(&s);
+        }
+    }
+    let wx0 = lo.x.floor().clamp(0.0, width as f64) as usize;
+    let wy0 = lo.y.floor().clamp(0.0, height as f64) as usize;
+    let wx1 = (hi.x.ceil() + 1.0).clamp(0.0, width as f64) as usize;
+    let wy1 = (hi.y.ceil() + 1.0).clamp(0.0, height as f64) as usize;
+    let (ww, wh) = (wx1.saturating_sub(wx0), wy1.saturating_sub(wy0));
+    let mut depth = vec![f32::INFINITY; ww * wh];
+    let mut face = vec![u32::MAX; ww * wh];
     for (fi, t) in triangles.iter().enumerate() {
         let p = t.map(|i| cam[i as usize]);
         if p.iter().any(|q| q.z <= 1e-6) {
+            continue;
+        }
+        if cull_back && (p[1] - p[0]).cross(&(p[2] - p[0])).dot(&p[0]) >= 0.0 {
             continue;
         }
         let (Some(s0), Some(s1), Some(s2)) = (k.project(&p[0]), k.project(&p[1]), k.project(&p[2]))
@@ -92,41 +126,53 @@ pub fn rasterize(
         let x1 = (x1 as usize).min(width.saturating_sub(1));
         let y1 = (y1 as usize).min(height.saturating_sub(1));
         let iz = [1.0 / p[0].z, 1.0 / p[1].z, 1.0 / p[2].z];
+        // Barycentric weights are affine in the pixel centre: w_i(x, y) =
+        // (s_j - c) x (s_k - c) / area = a_i + b_i x + c_i y.
+        let affine = |j: usize, l: usize| {
+            let (sj, sl) = (s[j], s[l]);
+            (
+                sj.perp(&sl) / area,
+                (sj.y - sl.y) / area,
+                (sl.x - sj.x) / area,
+            )
+        };
+        let (e0, e1) = (affine(1, 2), affine(2, 0));
+        // The weights' coefficients in x and, per row, their constants.
+        let bx = [e0.1, e1.1, -e0.1 - e1.1];
+        // Inverse depth is affine too: sum of w_i / z_i.
+        let ibx = bx[0] * iz[0] + bx[1] * iz[1] + bx[2] * iz[2];
         for y in y0..=y1 {
-            // Only the row's span of the triangle (thin triangles have
-            // large boxes): where the row's centre line crosses its edges,
-            // widened by a pixel; the barycentric test below decides.
             let yc = y as f64 + 0.5;
-            let (mut xl, mut xr) = (f64::INFINITY, f64::NEG_INFINITY);
-            for (a, b) in [(s[0], s[1]), (s[1], s[2]), (s[2], s[0])] {
-                let (ylo, yhi) = (a.y.min(b.y), a.y.max(b.y));
-                if yc < ylo || yc > yhi {
-                    continue;
+            let r = [e0.0 + e0.2 * yc, e1.0 + e1.2 * yc];
+            let r = [r[0], r[1], 1.0 - r[0] - r[1]];
+            // The pixel centres xc = x + 0.5 of the row with every weight
+            // at least -1e-9: an interval, from each affine weight.
+            let (mut lo, mut hi) = (x0 as f64 + 0.5, x1 as f64 + 0.5);
+            for i in 0..3 {
+                let bound = (-1e-9 - r[i]) / bx[i];
+                if bx[i] > 0.0 {
+                    lo = lo.max(bound);
+                } else if bx[i] < 0.0 {
+                    hi = hi.min(bound);
+                } else if r[i] < -1e-9 {
+                    hi = f64::NEG_INFINITY;
                 }
-                let x = if (b.y - a.y).abs() < 1e-12 {
-                    xl = xl.min(a.x.min(b.x));
-                    a.x.max(b.x)
-                } else {
-                    a.x + (yc - a.y) / (b.y - a.y) * (b.x - a.x)
-                };
-                xl = xl.min(x);
-                xr = xr.max(x);
             }
-            if xl > xr {
+            if lo.is_nan() || hi.is_nan() || lo > hi {
                 continue;
             }
-            let xs = ((xl - 1.0).floor().max(x0 as f64)) as usize;
-            let xe = ((xr + 1.0).ceil().max(0.0) as usize).min(x1);
+            let xs = (lo - 0.5).ceil().max(x0 as f64) as usize;
+            let xe = (hi - 0.5).floor().min(x1 as f64);
+            if xe < xs as f64 {
+                continue;
+            }
+            let xe = xe as usize;
+            let ir = r[0] * iz[0] + r[1] * iz[1] + r[2] * iz[2];
+            // Inside the window: the triangle's box lies within it.
+            let row = (y - wy0) * ww;
             for x in xs..=xe {
-                let c = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
-                let w0 = (s[1] - c).perp(&(s[2] - c)) / area;
-                let w1 = (s[2] - c).perp(&(s[0] - c)) / area;
-                let w2 = 1.0 - w0 - w1;
-                if w0 < -1e-9 || w1 < -1e-9 || w2 < -1e-9 {
-                    continue;
-                }
-                let z = (1.0 / (w0 * iz[0] + w1 * iz[1] + w2 * iz[2])) as f32;
-                let i = y * width + x;
+                let z = (1.0 / (ir + ibx * (x as f64 + 0.5))) as f32;
+                let i = row + x - wx0;
                 if z < depth[i] {
                     depth[i] = z;
                     face[i] = fi as u32;
@@ -137,22 +183,60 @@ pub fn rasterize(
     DepthBuffer {
         width,
         height,
+        window: (wx0, wy0, ww, wh),
         depth,
         face,
     }
 }
 
-impl DepthBuffer {
-    fn at(&self, x: isize, y: isize) -> f32 {
-        if x < 0 || y < 0 || x as usize >= self.width || y as usize >= self.height {
-            return f32::INFINITY;
+/// Whether the mesh bounds a solid seen from outside: every edge joins two
+/// triangles that run along it in opposite directions (closed and wound
+/// consistently) and the enclosed volume is positive (wound outwards, so
+/// [`Mesh::face_normals`] point out).
+pub fn is_solid(mesh: &Mesh) -> bool {
+    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
         }
-        self.depth[y as usize * self.width + x as usize]
+    }
+    let closed = directed
+        .iter()
+        .all(|(&(a, b), &n)| n == 1 && a != b && directed.get(&(b, a)) == Some(&1));
+    let volume: f64 = mesh
+        .triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+            a.dot(&b.cross(&c))
+        })
+        .sum();
+    closed && volume > 0.0
+}
+
+impl DepthBuffer {
+    /// Index into the window's buffers of an image pixel, if in it.
+    fn index(&self, x: isize, y: isize) -> Option<usize> {
+        let (x0, y0, w, h) = self.window;
+        let (dx, dy) = (x - x0 as isize, y - y0 as isize);
+        (dx >= 0 && dy >= 0 && (dx as usize) < w && (dy as usize) < h)
+            .then(|| dy as usize * w + dx as usize)
+    }
+
+    /// Depth at an image pixel (infinity where no surface or outside).
+    pub fn at(&self, x: isize, y: isize) -> f32 {
+        self.index(x, y).map_or(f32::INFINITY, |i| self.depth[i])
+    }
+
+    /// The triangle seen at an image pixel, if any.
+    pub fn face_at(&self, x: usize, y: usize) -> Option<u32> {
+        let i = self.index(x as isize, y as isize)?;
+        (self.face[i] != u32::MAX).then_some(self.face[i])
     }
 
     /// Whether the pixel shows the object.
     pub fn covered(&self, x: usize, y: usize) -> bool {
-        self.depth[y * self.width + x].is_finite()
+        self.at(x as isize, y as isize).is_finite()
     }
 }
 
@@ -189,7 +273,22 @@ impl EdgeModel {
             })
             .collect();
         edges.sort_by_key(|e| (e.a, e.b));
+        let mut lo = Vector3::repeat(f64::INFINITY);
+        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+        for v in &mesh.vertices {
+            lo = lo.inf(v);
+            hi = hi.sup(v);
+        }
+        let corners = std::array::from_fn(|i| {
+            Vector3::new(
+                if i & 1 == 0 { lo.x } else { hi.x },
+                if i & 2 == 0 { lo.y } else { hi.y },
+                if i & 4 == 0 { lo.z } else { hi.z },
+            )
+        });
         Self {
+            solid: is_solid(mesh),
+            corners,
             vertices: mesh.vertices.clone(),
             triangles: mesh.triangles.clone(),
             normals,
@@ -199,7 +298,37 @@ impl EdgeModel {
 
     /// Depth of the mesh at `pose` (see [`rasterize`]).
     pub fn depth(&self, k: &Intrinsics, pose: &Pose, width: usize, height: usize) -> DepthBuffer {
-        rasterize(&self.vertices, &self.triangles, k, pose, width, height)
+        rasterize(
+            &self.vertices,
+            &self.triangles,
+            k,
+            pose,
+            width,
+            height,
+            self.solid,
+        )
+    }
+
+    /// The box `(x, y, w, h)` of the vertices projected at `pose` (those in
+    /// front of the camera), if any.
+    pub fn projected_box(&self, k: &Intrinsics, pose: &Pose) -> Option<(f64, f64, f64, f64)> {
+        let mut lo = Vector2::new(f64::INFINITY, f64::INFINITY);
+        let mut hi = Vector2::new(f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for p in self
+            .vertices
+            .iter()
+            .filter_map(|v| k.project(&pose.transform(v)))
+        {
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        (lo.x <= hi.x && lo.y <= hi.y).then(|| (lo.x, lo.y, hi.x - lo.x, hi.y - lo.y))
+    }
+
+    /// The 8 corners of the vertices' axis-aligned box (object
+    /// coordinates).
+    pub fn box_corners(&self) -> &[Vector3<f64>; 8] {
+        &self.corners
     }
 
     /// The largest distance of a vertex from the object's origin.
@@ -298,7 +427,109 @@ impl EdgeModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vision::rng::SplitMix64;
     use nalgebra::Rotation3;
+
+    /// The nearest depth at a pixel centre by testing every triangle, and
+    /// the smallest barycentric weight's distance from 0 among the
+    /// triangles (near 0: on an edge, where rounding may decide).
+    fn brute_depth(mesh: &Mesh, k: &Intrinsics, pose: &Pose, x: usize, y: usize) -> (f32, f64) {
+        let c = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+        let (mut best, mut edge) = (f32::INFINITY, f64::INFINITY);
+        for t in &mesh.triangles {
+            let p = t.map(|i| pose.transform(&mesh.vertices[i as usize]));
+            if p.iter().any(|q| q.z <= 1e-6) {
+                continue;
+            }
+            let s = p.map(|q| k.project(&q).expect("in front"));
+            let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
+            if area.abs() < 1e-12 {
+                continue;
+            }
+            let w0 = (s[1] - c).perp(&(s[2] - c)) / area;
+            let w1 = (s[2] - c).perp(&(s[0] - c)) / area;
+            let w = [w0, w1, 1.0 - w0 - w1];
+            edge = edge.min(w.iter().map(|v| v.abs()).fold(f64::INFINITY, f64::min));
+            if w.iter().all(|&v| v >= -1e-9) {
+                let z = 1.0 / (w[0] / p[0].z + w[1] / p[1].z + w[2] / p[2].z);
+                best = best.min(z as f32);
+            }
+        }
+        (best, edge)
+    }
+
+    #[test]
+    fn solids_are_closed_consistent_and_wound_outwards() {
+        let cube = Mesh::cuboid(0.1, 0.1, 0.1);
+        assert!(is_solid(&cube));
+        assert!(is_solid(&Mesh::rounded_box(0.1, 0.06, 0.16, 0.025, 4)));
+        let mut flipped = cube.clone();
+        flipped.triangles[3].swap(0, 1);
+        assert!(!is_solid(&flipped));
+        let mut inside_out = cube.clone();
+        for t in &mut inside_out.triangles {
+            t.swap(0, 1);
+        }
+        assert!(!is_solid(&inside_out));
+        let mut open = cube;
+        open.triangles.pop();
+        assert!(!is_solid(&open));
+    }
+
+    #[test]
+    fn rasterizer_matches_a_per_pixel_test_of_every_triangle() {
+        let k = Intrinsics {
+            fx: 150.0,
+            fy: 150.0,
+            cx: 40.0,
+            cy: 30.0,
+        };
+        let mut rng = SplitMix64::new(11);
+        let meshes = [
+            Mesh::cuboid(0.15, 0.1, 0.07),
+            Mesh::cylinder(0.05, 0.12, 12),
+            Mesh::rounded_box(0.1, 0.06, 0.16, 0.025, 3),
+        ];
+        for mesh in &meshes {
+            for _ in 0..6 {
+                let pose = Pose {
+                    rotation: Rotation3::from_euler_angles(
+                        rng.range_f64(-3.0, 3.0),
+                        rng.range_f64(-3.0, 3.0),
+                        rng.range_f64(-3.0, 3.0),
+                    )
+                    .into_inner(),
+                    // Some poses reach past the image's border.
+                    translation: Vector3::new(
+                        rng.range_f64(-0.1, 0.1),
+                        rng.range_f64(-0.08, 0.08),
+                        rng.range_f64(0.25, 0.5),
+                    ),
+                };
+                assert!(is_solid(mesh));
+                // Culling the back faces of a solid changes nothing.
+                let cull = rng.next_f64() < 0.5;
+                let d = rasterize(&mesh.vertices, &mesh.triangles, &k, &pose, 80, 60, cull);
+                let mut covered = 0;
+                for y in 0..60 {
+                    for x in 0..80 {
+                        let (want, edge) = brute_depth(mesh, &k, &pose, x, y);
+                        let got = d.at(x as isize, y as isize);
+                        if edge < 1e-6 {
+                            continue;
+                        }
+                        covered += usize::from(want.is_finite());
+                        assert_eq!(got.is_finite(), want.is_finite(), "({x}, {y})");
+                        if want.is_finite() {
+                            assert!((got - want).abs() <= 1e-5 * want, "({x}, {y}) {got} {want}");
+                            assert!(d.face_at(x, y).is_some());
+                        }
+                    }
+                }
+                assert!(covered > 0);
+            }
+        }
+    }
 
     fn setup() -> (Intrinsics, Pose) {
         let k = Intrinsics {
@@ -347,7 +578,7 @@ mod tests {
         assert!(samples.len() > 50);
         // Depth is the nearest surface: the cube's centre is behind it.
         let c = k.project(&pose.translation).unwrap();
-        let z = depth.depth[c.y as usize * 320 + c.x as usize];
+        let z = depth.at(c.x as isize, c.y as isize);
         assert!(z < 0.6 && z > 0.6 - 0.0867, "{z}");
     }
 

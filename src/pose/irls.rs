@@ -11,6 +11,7 @@
 //! absolute deviation). It stops when the pose no longer changes.
 
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::edges::{EdgeModel, EdgeSample};
@@ -50,6 +51,15 @@ pub struct IrlsParams {
     /// within this many pixels of the visibility mask (edges lie on the
     /// mask's border).
     pub mask_margin_px: usize,
+    /// Restarts turn the initial pose this many degrees either way about
+    /// each camera axis (0: none); see [`restart_poses`].
+    pub restart_degrees: f64,
+    /// Restarts move the initial pose this share of its distance nearer
+    /// and farther (0: none).
+    pub restart_depth: f64,
+    /// Matched edge samples that a pixel of image motion from the initial
+    /// pose costs when the restarts are ranked (see [`refine`]).
+    pub prior_weight: f64,
 }
 
 impl Default for IrlsParams {
@@ -66,6 +76,9 @@ impl Default for IrlsParams {
             tolerance_px: 0.5,
             max_step_px: 4.0,
             mask_margin_px: 3,
+            restart_degrees: 10.0,
+            restart_depth: 0.02,
+            prior_weight: 4.0,
         }
     }
 }
@@ -86,7 +99,11 @@ impl IrlsParams {
             && self.tukey_c > 0.0
             && self.tolerance_px > 0.0
             && self.max_step_px > 0.0
-            && self.mask_margin_px <= 50;
+            && self.mask_margin_px <= 50
+            && (0.0..=45.0).contains(&self.restart_degrees)
+            && (0.0..0.5).contains(&self.restart_depth)
+            && self.prior_weight.is_finite()
+            && self.prior_weight >= 0.0;
         if ok {
             Ok(())
         } else {
@@ -166,6 +183,11 @@ impl Gradients {
     }
 }
 
+/// Tolerance (pixels) of the agreement that ranks the restarts.
+pub const AGREE_PX: f64 = 1.0;
+/// Tracks closer than this (mean corner motion, pixels) merge.
+const MERGE_PX: f64 = 0.5;
+
 /// Edge hypotheses kept per sample.
 const HYPOTHESES: usize = 3;
 
@@ -241,12 +263,84 @@ fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTH
     Some((out, count))
 }
 
-fn inside(mask: &Mask, p: &Vector2<f64>) -> bool {
-    if p.x < 0.0 || p.y < 0.0 {
-        return false;
+/// The chessboard (L-infinity) distance of every pixel to the nearest pixel
+/// of a mask: a pixel lies in the mask grown by `r` (square neighbourhood)
+/// exactly when its distance is at most `r`. One map answers every growth
+/// the refinement asks (the search range shrinks, the margin stays).
+pub struct MaskDistance {
+    width: usize,
+    height: usize,
+    /// Saturates at `u16::MAX` (no mask pixel, or farther).
+    dist: Vec<u16>,
+}
+
+impl MaskDistance {
+    /// Two raster passes with unit steps to all 8 neighbours, which is
+    /// exact for the chessboard distance.
+    pub fn new(m: &Mask) -> Self {
+        let (w, h) = (m.width, m.height);
+        let mut d = vec![u16::MAX; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                if m.get(x, y) {
+                    d[y * w + x] = 0;
+                }
+            }
+        }
+        let step = |v: u16| v.saturating_add(1);
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                let mut v = d[i];
+                if x > 0 {
+                    v = v.min(step(d[i - 1]));
+                }
+                if y > 0 {
+                    v = v.min(step(d[i - w]));
+                    if x > 0 {
+                        v = v.min(step(d[i - w - 1]));
+                    }
+                    if x + 1 < w {
+                        v = v.min(step(d[i - w + 1]));
+                    }
+                }
+                d[i] = v;
+            }
+        }
+        for y in (0..h).rev() {
+            for x in (0..w).rev() {
+                let i = y * w + x;
+                let mut v = d[i];
+                if x + 1 < w {
+                    v = v.min(step(d[i + 1]));
+                }
+                if y + 1 < h {
+                    v = v.min(step(d[i + w]));
+                    if x + 1 < w {
+                        v = v.min(step(d[i + w + 1]));
+                    }
+                    if x > 0 {
+                        v = v.min(step(d[i + w - 1]));
+                    }
+                }
+                d[i] = v;
+            }
+        }
+        Self {
+            width: w,
+            height: h,
+            dist: d,
+        }
     }
-    let (x, y) = (p.x as usize, p.y as usize);
-    x < mask.width && y < mask.height && mask.get(x, y)
+
+    /// Whether the pixel containing `p` lies in the mask grown by `r`.
+    pub fn within(&self, p: &Vector2<f64>, r: usize) -> bool {
+        if p.x < 0.0 || p.y < 0.0 {
+            return false;
+        }
+        let (x, y) = (p.x as usize, p.y as usize);
+        x < self.width && y < self.height && usize::from(self.dist[y * self.width + x]) <= r
+    }
 }
 
 /// The residual (pixels along the normal from the projected model point to
@@ -273,6 +367,68 @@ pub fn residual_and_jacobian(
     Some((r, Vector6::new(a.x, a.y, a.z, w.x, w.y, w.z)))
 }
 
+/// Counts of how well the model's edges at `pose` agree with the image.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Agreement {
+    /// Visible model edge samples in the image.
+    pub samples: usize,
+    /// Those in the mask (all without one).
+    pub inside: usize,
+    /// Those in the mask with a compatible image edge, also in the mask,
+    /// within the tolerance along their normal.
+    pub matched: usize,
+}
+
+/// How well the model's edges at `pose` agree with the image (see
+/// [`Agreement`]); the mask counts grown by the margin.
+pub fn agreement(
+    grads: &Gradients,
+    edges: &EdgeModel,
+    k: &Intrinsics,
+    pose: &Pose,
+    mask: Option<&MaskDistance>,
+    params: &IrlsParams,
+    tolerance_px: f64,
+) -> Agreement {
+    let depth = edges.depth(k, pose, grads.width, grads.height);
+    let samples = edges.samples(k, pose, &depth, params.sample_step);
+    count_agreement(grads, &samples, mask, params, tolerance_px)
+}
+
+fn count_agreement(
+    grads: &Gradients,
+    samples: &[EdgeSample],
+    mask: Option<&MaskDistance>,
+    params: &IrlsParams,
+    tolerance_px: f64,
+) -> Agreement {
+    let near = IrlsParams {
+        search_range: tolerance_px,
+        ..*params
+    };
+    let mut a = Agreement {
+        samples: samples.len(),
+        ..Agreement::default()
+    };
+    for s in samples {
+        let margin = params.mask_margin_px;
+        if mask.is_some_and(|m| !m.within(&s.pixel, margin)) {
+            continue;
+        }
+        a.inside += 1;
+        let Some((found, n)) = search(grads, s, &near) else {
+            continue;
+        };
+        if found[..n].iter().any(|&o| {
+            o.abs() <= tolerance_px
+                && mask.is_none_or(|m| m.within(&(s.pixel + s.normal * o), margin))
+        }) {
+            a.matched += 1;
+        }
+    }
+    a
+}
+
 /// The result of a refinement.
 #[derive(Clone, Debug)]
 pub struct PoseResult {
@@ -290,73 +446,119 @@ pub struct PoseResult {
     pub covariance: [[f64; 6]; 6],
 }
 
-/// Refines `initial` by IRLS; with a `mask`, by OR-IRLS (correspondences
-/// whose sample or match lies outside the mask are dropped).
-pub fn refine(
-    img: &ColorImage,
-    edges: &EdgeModel,
-    k: &Intrinsics,
-    initial: &Pose,
-    mask: Option<&Mask>,
-    params: &IrlsParams,
-) -> Result<PoseResult, PoseError> {
-    params.validate()?;
-    k.validate()?;
-    if let Some(m) = mask {
-        if (m.width, m.height) != (img.width(), img.height()) {
-            return Err(PoseError::InvalidParameter(format!(
-                "the mask is {}x{}, the image {}x{}",
-                m.width,
-                m.height,
-                img.width(),
-                img.height()
-            )));
-        }
-    }
-    let grads = Gradients::new(img);
-    let match_mask = mask.map(|m| dilate(m, params.mask_margin_px));
-    let mut sample_mask: Option<(usize, Mask)> = None;
-    let radius = edges.radius();
-    // Image motion of the model's points under a twist, at the pose's depth.
-    let motion = |pose: &Pose, xi: &Vector6<f64>| -> f64 {
+/// What every track of a refinement shares: the image's gradients, the
+/// model, the camera, the masks and the settings.
+struct Context<'a> {
+    grads: Gradients,
+    edges: &'a EdgeModel,
+    k: &'a Intrinsics,
+    /// Distances to the mask: matches must lie within the margin of it,
+    /// samples within the search range's [`growth`].
+    mask: Option<MaskDistance>,
+    params: &'a IrlsParams,
+    radius: f64,
+    initial: Pose,
+}
+
+/// One refinement from one start pose.
+struct Track {
+    pose: Pose,
+    iterations: usize,
+    converged: bool,
+    /// Weighted RMS residual, inliers, samples and covariance of the last
+    /// Gauss-Newton step.
+    last: (f64, usize, usize, Matrix6<f64>),
+}
+
+/// The search range at outer iteration `i` (from 1): it shrinks by 30% per
+/// iteration down to a quarter of the first.
+fn range_at(params: &IrlsParams, i: usize) -> f64 {
+    let shrink = 0.7f64.powi(i.min(64) as i32 - 1);
+    (params.search_range * shrink).max(params.search_range / 4.0)
+}
+
+/// How far the mask is grown for the samples at a search range: a model
+/// point may still be off by the range.
+fn growth(params: &IrlsParams, range: f64) -> usize {
+    params.mask_margin_px.max(range.round() as usize)
+}
+
+impl Context<'_> {
+    /// Image motion of the model's points under a twist, at the pose's depth.
+    fn motion(&self, pose: &Pose, xi: &Vector6<f64>) -> f64 {
         let z = pose.translation.z.abs().max(1e-9);
         let v = Vector3::new(xi[0], xi[1], xi[2]).norm();
         let w = Vector3::new(xi[3], xi[4], xi[5]).norm();
-        k.fx.max(k.fy) * (v + w * radius) / z
-    };
-    let mut pose = *initial;
-    let mut converged = false;
-    let mut iterations = 0;
-    let mut last = (0.0, 0, 0, Matrix6::zeros());
-    for _ in 0..params.max_iterations {
-        iterations += 1;
-        let depth = edges.depth(k, &pose, img.width(), img.height());
-        let range = (params.search_range * 0.7f64.powi(iterations as i32 - 1))
-            .max(params.search_range / 4.0);
+        self.k.fx.max(self.k.fy) * (v + w * self.radius) / z
+    }
+
+    /// Mean image distance (pixels) between the object's box corners at
+    /// two poses.
+    fn displacement(&self, a: &Pose, b: &Pose) -> f64 {
+        let corners = self.edges.box_corners();
+        let sum: f64 = corners
+            .iter()
+            .map(|c| {
+                match (
+                    self.k.project(&a.transform(c)),
+                    self.k.project(&b.transform(c)),
+                ) {
+                    (Some(p), Some(q)) => (p - q).norm(),
+                    // Behind the camera: as far as the image is wide.
+                    _ => 2.0 * self.k.cx.abs().max(1.0),
+                }
+            })
+            .sum();
+        sum / corners.len() as f64
+    }
+
+    /// The score that ranks the restarts: how well the model's edges agree
+    /// with the image at `pose` (matched samples within [`AGREE_PX`]), less
+    /// [`IrlsParams::prior_weight`] per pixel that the object's box corners
+    /// moved in the image from the initial pose. The prior matters where
+    /// the edges leave the pose ambiguous (a crease without contrast, a
+    /// small visible part): there the pose near the client's start wins.
+    fn score(&self, pose: &Pose) -> f64 {
+        let matched = agreement(
+            &self.grads,
+            self.edges,
+            self.k,
+            pose,
+            self.mask.as_ref(),
+            self.params,
+            AGREE_PX,
+        )
+        .matched;
+        let moved = self.displacement(pose, &self.initial);
+        matched as f64 - self.params.prior_weight * moved
+    }
+
+    /// One outer iteration of `t`: fresh correspondences, then a few
+    /// Gauss-Newton steps. Marks the track converged when the pose stopped
+    /// changing at the finest search range.
+    fn iterate(&self, t: &mut Track) -> Result<(), PoseError> {
+        let (params, k) = (self.params, self.k);
+        t.iterations += 1;
+        let (width, height) = (self.grads.width, self.grads.height);
+        let depth = self.edges.depth(k, &t.pose, width, height);
+        let range = range_at(params, t.iterations);
         let round = IrlsParams {
             search_range: range,
             ..*params
         };
-        // A model point may still be off by the search range: its test
-        // uses the mask grown by that much.
-        // (Grown again only when the range changes.)
-        let grow = params.mask_margin_px.max(range.round() as usize);
-        if let Some(m) = mask {
-            if sample_mask.as_ref().is_none_or(|(g, _)| *g != grow) {
-                sample_mask = Some((grow, dilate(m, grow)));
-            }
-        }
-        let matches: Vec<Match> = edges
-            .samples(k, &pose, &depth, params.sample_step)
+        let grow = growth(params, range);
+        let matches: Vec<Match> = self
+            .edges
+            .samples(k, &t.pose, &depth, params.sample_step)
             .into_iter()
             .filter_map(|s| {
-                let (found, n) = search(&grads, &s, &round)?;
+                let (found, n) = search(&self.grads, &s, &round)?;
                 let mut offsets = [0.0; HYPOTHESES];
                 let mut count = 0;
                 for &offset in &found[..n] {
                     let target = s.pixel + s.normal * offset;
-                    if let (Some((_, sm)), Some(mm)) = (&sample_mask, &match_mask) {
-                        if !inside(sm, &s.pixel) || !inside(mm, &target) {
+                    if let Some(m) = &self.mask {
+                        if !m.within(&s.pixel, grow) || !m.within(&target, params.mask_margin_px) {
                             continue;
                         }
                     }
@@ -373,7 +575,7 @@ pub fn refine(
         if matches.len() < 6 {
             return Err(PoseError::NotEnoughEdges(matches.len()));
         }
-        let start = pose;
+        let start = t.pose;
         for _ in 0..params.inner_steps {
             let rows: Vec<(f64, Vector6<f64>)> = matches
                 .iter()
@@ -385,7 +587,7 @@ pub fn refine(
                             let target = m.sample.pixel + m.sample.normal * o;
                             residual_and_jacobian(
                                 k,
-                                &pose,
+                                &t.pose,
                                 &m.sample.point,
                                 &m.sample.normal,
                                 &target,
@@ -426,30 +628,155 @@ pub fn refine(
             let Some(mut step) = damped.cholesky().map(|ch| ch.solve(&(-g))) else {
                 return Err(PoseError::NotEnoughEdges(inliers));
             };
-            let m = motion(&pose, &step);
+            let m = self.motion(&t.pose, &step);
             if m > params.max_step_px {
                 step *= params.max_step_px / m;
             }
-            pose = pose.updated(&step);
+            t.pose = t.pose.updated(&step);
             let rms = (wr2 / wsum.max(1e-12)).sqrt();
             let cov = damped.try_inverse().unwrap_or_else(Matrix6::zeros) * (sigma * sigma);
-            last = (rms, inliers, matches.len(), cov);
+            t.last = (rms, inliers, matches.len(), cov);
         }
         // How far this iteration moved the model's points in the image.
         let moved = matches
             .iter()
             .filter_map(|m| {
                 let a = k.project(&start.transform(&m.sample.point))?;
-                let b = k.project(&pose.transform(&m.sample.point))?;
+                let b = k.project(&t.pose.transform(&m.sample.point))?;
                 Some((a - b).norm())
             })
             .fold(0.0, f64::max);
-        if moved < params.tolerance_px && range <= params.search_range / 4.0 + 1e-9 {
-            converged = true;
-            break;
+        t.converged = moved < params.tolerance_px && range <= params.search_range / 4.0 + 1e-9;
+        Ok(())
+    }
+}
+
+/// The start poses of the restarts: `initial`, then turned by
+/// `degrees` either way about the camera's x, y and z axes through the
+/// object's origin, then moved along its viewing ray by `depth` of its
+/// distance either way (the directions an edge fit confuses most).
+pub fn restart_poses(initial: &Pose, degrees: f64, depth: f64) -> Vec<Pose> {
+    let mut out = vec![*initial];
+    if degrees > 0.0 {
+        for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
+            for sign in [-1.0, 1.0] {
+                let turn = nalgebra::Rotation3::new(axis * (sign * degrees.to_radians()));
+                out.push(Pose {
+                    rotation: turn.into_inner() * initial.rotation,
+                    translation: initial.translation,
+                });
+            }
         }
     }
-    let (rms, inliers, samples, cov) = last;
+    if depth > 0.0 {
+        for sign in [-1.0, 1.0] {
+            out.push(Pose {
+                rotation: initial.rotation,
+                translation: initial.translation * (1.0 + sign * depth),
+            });
+        }
+    }
+    out
+}
+
+/// Refines `initial` by IRLS; with a `mask`, by OR-IRLS (correspondences
+/// whose sample or match lies outside the mask are dropped).
+///
+/// Edge fits from one start are captured by the wrong edges in clutter or
+/// when little of the object is visible, so the refinement restarts from
+/// poses around `initial` (see [`restart_poses`]): every start runs
+/// through the coarse iterations (the search range shrinking), the
+/// [`KEEP`] whose edges then agree best with the image run on to
+/// convergence, and the one that agrees best at the end is the answer
+/// (agreement: visible model edge samples with an image edge within
+/// [`AGREE_PX`], in the mask).
+pub fn refine(
+    img: &ColorImage,
+    edges: &EdgeModel,
+    k: &Intrinsics,
+    initial: &Pose,
+    mask: Option<&Mask>,
+    params: &IrlsParams,
+) -> Result<PoseResult, PoseError> {
+    params.validate()?;
+    k.validate()?;
+    if let Some(m) = mask {
+        if (m.width, m.height) != (img.width(), img.height()) {
+            return Err(PoseError::InvalidParameter(format!(
+                "the mask is {}x{}, the image {}x{}",
+                m.width,
+                m.height,
+                img.width(),
+                img.height()
+            )));
+        }
+    }
+    let ctx = Context {
+        grads: Gradients::new(img),
+        edges,
+        k,
+        mask: mask.map(MaskDistance::new),
+        params,
+        radius: edges.radius(),
+        initial: *initial,
+    };
+    let new_track = |pose: Pose| Track {
+        pose,
+        iterations: 0,
+        converged: false,
+        last: (0.0, 0, 0, Matrix6::zeros()),
+    };
+    let starts = restart_poses(initial, params.restart_degrees, params.restart_depth);
+    // All tracks advance together, an iteration at a time (in parallel);
+    // a track that comes within MERGE_PX of an earlier one (same iteration,
+    // so same search range from here on) follows it, and is dropped.
+    let mut tracks: Vec<Track> = starts.into_iter().map(new_track).collect();
+    let mut first_error = None;
+    while tracks
+        .iter()
+        .any(|t| !t.converged && t.iterations < params.max_iterations)
+    {
+        let stepped: Vec<Result<Track, PoseError>> = tracks
+            .into_par_iter()
+            .map(|mut t| {
+                if !t.converged && t.iterations < params.max_iterations {
+                    ctx.iterate(&mut t)?;
+                }
+                Ok(t)
+            })
+            .collect();
+        tracks = Vec::new();
+        for r in stepped {
+            match r {
+                Ok(t) => {
+                    if !tracks
+                        .iter()
+                        .any(|u| ctx.displacement(&u.pose, &t.pose) < MERGE_PX)
+                    {
+                        tracks.push(t);
+                    }
+                }
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+    }
+    let scored: Vec<(f64, Track)> = tracks
+        .into_par_iter()
+        .map(|t| (ctx.score(&t.pose), t))
+        .collect();
+    // The best; among equals the earlier start (the initial pose first).
+    let mut best: Option<(f64, Track)> = None;
+    for t in scored {
+        if best.as_ref().is_none_or(|b| t.0 > b.0) {
+            best = Some(t);
+        }
+    }
+    let Some((_, best)) = best else {
+        return Err(first_error.unwrap_or(PoseError::NotEnoughEdges(0)));
+    };
+    let (rms, inliers, samples, cov) = best.last;
     let mut covariance = [[0.0; 6]; 6];
     for (r, row) in covariance.iter_mut().enumerate() {
         for (c, v) in row.iter_mut().enumerate() {
@@ -457,53 +784,14 @@ pub fn refine(
         }
     }
     Ok(PoseResult {
-        pose,
-        converged,
-        iterations,
+        pose: best.pose,
+        converged: best.converged,
+        iterations: best.iterations,
         residual_rms_px: rms,
         inliers,
         samples,
         covariance,
     })
-}
-
-/// The mask grown by `r` pixels (square neighbourhood): a row pass and a
-/// column pass, each testing a window by prefix counts, so the cost does
-/// not grow with `r` (it runs at every iteration, with `r` up to the search
-/// range).
-fn dilate(m: &Mask, r: usize) -> Mask {
-    if r == 0 {
-        return m.clone();
-    }
-    let (w, h) = (m.width, m.height);
-    // Rows: set pixels among the row's prefix, per pixel.
-    let mut rows = vec![false; w * h];
-    let mut count = vec![0u32; w + 1];
-    for y in 0..h {
-        for x in 0..w {
-            count[x + 1] = count[x] + u32::from(m.get(x, y));
-        }
-        for x in 0..w {
-            rows[y * w + x] = count[(x + r + 1).min(w)] > count[x.saturating_sub(r)];
-        }
-    }
-    // Columns: prefix counts down each column, kept row-major.
-    let mut down = vec![0u32; (h + 1) * w];
-    for y in 0..h {
-        for x in 0..w {
-            down[(y + 1) * w + x] = down[y * w + x] + u32::from(rows[y * w + x]);
-        }
-    }
-    let mut out = Mask::new(w, h);
-    for y in 0..h {
-        let (lo, hi) = (y.saturating_sub(r) * w, (y + r + 1).min(h) * w);
-        for x in 0..w {
-            if down[hi + x] > down[lo + x] {
-                out.set(x, y, true);
-            }
-        }
-    }
-    out
 }
 
 #[cfg(test)]
@@ -512,23 +800,28 @@ mod tests {
     use crate::vision::rng::SplitMix64;
 
     #[test]
-    fn dilation_equals_the_square_neighbourhood_test() {
+    fn mask_distance_equals_the_square_neighbourhood_test() {
         let mut rng = SplitMix64::new(3);
         let (w, h) = (37, 23);
         let mut m = Mask::new(w, h);
         for _ in 0..12 {
             m.set(rng.range_usize(0, w), rng.range_usize(0, h), true);
         }
+        let d = MaskDistance::new(&m);
         for r in [0, 1, 3, 30] {
-            let d = dilate(&m, r);
             for y in 0..h {
                 for x in 0..w {
                     let near = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|yy| {
                         (x.saturating_sub(r)..(x + r + 1).min(w)).any(|xx| m.get(xx, yy))
                     });
-                    assert_eq!(d.get(x, y), near, "r {r}, ({x}, {y})");
+                    let p = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+                    assert_eq!(d.within(&p, r), near, "r {r}, ({x}, {y})");
                 }
             }
         }
+        // No mask pixel: nothing is near it.
+        let none = MaskDistance::new(&Mask::new(5, 4));
+        assert!(!none.within(&Vector2::new(1.0, 1.0), 1000));
+        assert!(!d.within(&Vector2::new(-0.5, 1.0), 1000));
     }
 }

@@ -33,6 +33,8 @@ pub enum PoseError {
     NotEnoughEdges(usize),
     #[error("no model named {0} is loaded")]
     UnknownModel(String),
-    #[error("model {0} detects nothing in the image, so there is no mask")]
+    #[error(
+        "model {0} detects nothing where the initial pose puts the object, so there is no mask"
+    )]
     NotDetected(String),
 }

@@ -36,7 +36,7 @@ pub fn render(
     seed: u64,
 ) -> Result<PoseScene, VisionError> {
     let (w, h) = (background.width(), background.height());
-    let raster = rasterize(&mesh.vertices, &mesh.triangles, k, pose, w, h);
+    let raster = rasterize(&mesh.vertices, &mesh.triangles, k, pose, w, h, false);
     let light = Vector3::new(-0.4, -0.5, -0.77).normalize();
     let corners = corner_normals(mesh, SMOOTH_DEGREES);
     let cam: Vec<Vector3<f64>> = mesh.vertices.iter().map(|v| pose.transform(v)).collect();
@@ -66,8 +66,7 @@ pub fn render(
     let mut data = background.data().to_vec();
     let mut object = Mask::new(w, h);
     for i in 0..w * h {
-        let f = raster.face[i];
-        if f != u32::MAX {
+        if let Some(f) = raster.face_at(i % w, i / w) {
             object.set(i % w, i / w, true);
             let s = shade(f as usize, i % w, i / w);
             data[i * 3] = s;
