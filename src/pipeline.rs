@@ -7,7 +7,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::model::Model;
-use crate::vision::detect::{detection_masks, DenseBounds, DetectStats, Detector};
+use crate::vision::detect::{detection_masks, DenseBounds, DetectStats, Detector, Region};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
@@ -37,6 +37,8 @@ pub struct DetectOptions {
     /// Exact pruning (off only to check it).
     pub prune: bool,
     pub max_pixels: usize,
+    /// Only detections about here (see [`Region`]).
+    pub region: Option<Region>,
 }
 
 impl Default for DetectOptions {
@@ -47,6 +49,7 @@ impl Default for DetectOptions {
             masks: MaskMode::Refined,
             prune: true,
             max_pixels: DEFAULT_MAX_PIXELS,
+            region: None,
         }
     }
 }
@@ -246,6 +249,7 @@ fn run_model(
         params.max_detections = k;
     }
     params.prune = opts.prune;
+    params.region = opts.region;
     let detector = Detector::new(&model.views)?;
     let (dets, s) = detector.detect_with_bounds(pyr, &params, pre)?;
     stats.locations += s.locations;

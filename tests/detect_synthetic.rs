@@ -4,7 +4,7 @@ use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use sdhop::train::ko8::above_threshold;
-use sdhop::vision::detect::{box_iou, DetectParams, Detector};
+use sdhop::vision::detect::{box_iou, DetectParams, Detector, Region};
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
 use sdhop::vision::pyramid::FeaturePyramid;
@@ -109,6 +109,72 @@ fn pruning_returns_exactly_the_unpruned_detections() {
             if threshold == t0 {
                 assert!(st_p.min_cuts * 10 < st_p.locations, "{st_p:?}");
             }
+        }
+    }
+}
+
+#[test]
+fn a_region_keeps_only_boxes_about_there_and_pruning_stays_exact() {
+    let scenes = scenes(3);
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let detector = Detector::new(&model.views).unwrap();
+    for s in &scenes {
+        let pyr =
+            FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        let (tx, ty, tw, th) = s.truth_box;
+        // The object's own box, and one as large where it is not.
+        let away = (
+            if tx > 160.0 { 0.0 } else { 320.0 - tw },
+            if ty > 120.0 { 0.0 } else { 240.0 - th },
+            tw,
+            th,
+        );
+        let mut best = Vec::new();
+        for bbox in [s.truth_box, away] {
+            let region = Region { bbox, min_iou: 0.3 };
+            let mut p = DetectParams {
+                max_detections: 1,
+                threshold: model.meta.detection.threshold - 2.0,
+                region: Some(region),
+                ..model.meta.detection
+            };
+            p.prune = true;
+            let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
+            p.prune = false;
+            let (full, st_f) = detector.detect(&pyr, &p).unwrap();
+            assert_eq!(pruned, full);
+            assert!(st_p.min_cuts <= st_f.min_cuts);
+            for d in &full {
+                assert!(box_iou(d.bbox, bbox) >= 0.3, "{:?} vs {bbox:?}", d.bbox);
+            }
+            best.push(
+                full.first()
+                    .map(|d| (d.score, box_iou(d.bbox, s.truth_box))),
+            );
+        }
+        // A region that is no box, or an IoU beyond 1, is refused.
+        for region in [
+            Region {
+                bbox: (0.0, 0.0, 0.0, 10.0),
+                min_iou: 0.3,
+            },
+            Region {
+                bbox: s.truth_box,
+                min_iou: 1.5,
+            },
+        ] {
+            let p = DetectParams {
+                region: Some(region),
+                ..model.meta.detection
+            };
+            assert!(detector.detect(&pyr, &p).is_err());
+        }
+        // About the object the detection is the object; away from it, any
+        // detection scores lower.
+        let (on_score, on_iou) = best[0].expect("a detection on the object");
+        assert!(on_iou >= 0.5, "{on_iou}");
+        if let Some((away_score, _)) = best[1] {
+            assert!(away_score < on_score, "{away_score} vs {on_score}");
         }
     }
 }

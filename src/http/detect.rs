@@ -260,6 +260,7 @@ pub async fn detect(
             masks,
             prune: true,
             max_pixels: limits.max_pixels,
+            region: None,
         },
     };
     let resp = state.infer.detect(permit, task, deadline).await?;

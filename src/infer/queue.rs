@@ -14,7 +14,7 @@ use super::{InferError, Job, PoseTask, Shared, Work};
 use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
 use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions};
-use crate::pose::api::{detect_options, estimate_with};
+use crate::pose::api::estimate_with;
 use crate::pose::PoseError;
 use crate::vision::detect::DenseBounds;
 use crate::vision::image::ColorImage;
@@ -53,10 +53,13 @@ impl Work {
                 t.models.iter().map(|m| m.as_ref()).collect(),
                 t.opts,
             )),
-            Work::Pose(t, _) => t
-                .model
-                .as_ref()
-                .map(|m| (t.image.as_ref(), vec![m.as_ref()], detect_options())),
+            Work::Pose(t, _) => t.model.as_ref().map(|m| {
+                (
+                    t.image.as_ref(),
+                    vec![m.as_ref()],
+                    t.params.detect_options(&t.mesh),
+                )
+            }),
         }
     }
 }
@@ -188,7 +191,7 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                             model,
                         } = *task;
                         let found = match &model {
-                            Some(m) => Some(detect(&[m.as_ref()], &detect_options())?),
+                            Some(m) => Some(detect(&[m.as_ref()], &params.detect_options(&mesh))?),
                             None => None,
                         };
                         estimate_with(&image, &mesh, &params, mask, |name| {

@@ -4,13 +4,13 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::geometry::{Intrinsics, Pose};
+use super::geometry::{projected_box, Intrinsics, Pose};
 use super::irls::{refine, IrlsParams};
 use super::mesh::Mesh;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
 use crate::pipeline::{detect_image, DetectOptions, DetectResponse, DetectionJson, MaskMode};
-use crate::vision::detect::box_iou;
+use crate::vision::detect::Region;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 
@@ -81,43 +81,24 @@ pub struct PoseResponse {
     pub detection: Option<DetectionJson>,
 }
 
-/// Detections of the named model that `mask: "detect"` chooses among.
-pub const DETECT_CANDIDATES: usize = 5;
+/// The least IoU of a detection's box with the box of the mesh at the
+/// initial pose, for `mask: "detect"`.
+pub const REGION_IOU: f64 = 0.3;
 
-/// The detection options of `mask: "detect"`: the best
-/// [`DETECT_CANDIDATES`] detections, with their refined masks.
-pub fn detect_options() -> DetectOptions {
+/// The detection options of `mask: "detect"`: the best detection whose box
+/// overlaps `expected` (the object's box at the initial pose: the client
+/// says where the object is, and the best detection elsewhere would give
+/// the mask of something else) by [`REGION_IOU`], with its refined mask.
+pub fn detect_options(expected: Option<(f64, f64, f64, f64)>) -> DetectOptions {
     DetectOptions {
-        max_detections: Some(DETECT_CANDIDATES),
+        max_detections: Some(1),
         masks: MaskMode::Refined,
+        region: expected.map(|bbox| Region {
+            bbox,
+            min_iou: REGION_IOU,
+        }),
         ..DetectOptions::default()
     }
-}
-
-/// The detection whose (full-object) box overlaps `expected` most, the
-/// object's box at the initial pose: the client says where the object is,
-/// and the best-scoring detection elsewhere would give a mask of something
-/// else. Among equal overlaps the better score (detections come best
-/// first). `None` when none overlaps it, or none has a refined mask.
-pub fn pick_detection(
-    detections: Vec<DetectionJson>,
-    expected: Option<(f64, f64, f64, f64)>,
-) -> Option<(DetectionJson, Mask)> {
-    let overlap = |d: &DetectionJson| {
-        expected.map_or(1.0, |e| {
-            box_iou((d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height), e)
-        })
-    };
-    let mut best: Option<(f64, DetectionJson)> = None;
-    for d in detections {
-        let o = overlap(&d);
-        if o > 0.0 && d.mask.is_some() && best.as_ref().is_none_or(|(b, _)| o > *b) {
-            best = Some((o, d));
-        }
-    }
-    let (_, det) = best?;
-    let mask = det.mask.as_ref().and_then(Mask::from_rle)?;
-    Some((det, mask))
 }
 
 /// A pose request checked before any work: the initial pose (projected to
@@ -130,6 +111,17 @@ pub struct Checked {
 }
 
 impl PoseParams {
+    /// The detection options of `mask: "detect"` for this request (see
+    /// [`detect_options`]): around the mesh's box at the initial pose,
+    /// anywhere when the initial pose is unusable (the request then fails
+    /// its checks).
+    pub fn detect_options(&self, mesh: &Mesh) -> DetectOptions {
+        let expected = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)
+            .ok()
+            .and_then(|p| projected_box(&mesh.vertices, &self.intrinsics, &p));
+        detect_options(expected)
+    }
+
     /// Checks the parameters against the image's size and the mask the
     /// client sent (if any). Without an explicit `mask`, a sent mask is
     /// used and otherwise none; a sent mask with `mask` other than
@@ -201,14 +193,14 @@ pub fn estimate(
             .iter()
             .find(|m| m.meta.name == name)
             .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
-        detect_image(img, &[model], &detect_options())
+        detect_image(img, &[model], &params.detect_options(mesh))
             .map_err(|e| PoseError::InvalidParameter(e.to_string()))
     })
 }
 
 /// [`estimate`] with the detection left to `detect`, which runs the named
-/// model on the image with [`detect_options`] (the service runs it on its
-/// backend's pyramids).
+/// model on the image with [`PoseParams::detect_options`] (the service runs
+/// it on its backend's pyramids).
 pub fn estimate_with<F>(
     img: &ColorImage,
     mesh: &Mesh,
@@ -226,8 +218,15 @@ where
         MaskSource::Provided => (mask, MaskUsed::Provided, None),
         MaskSource::Detect => {
             let name = params.model.as_deref().unwrap_or_default();
-            let expected = edges.projected_box(&params.intrinsics, &checked.initial);
-            let (det, m) = pick_detection(detect(name)?.detections, expected)
+            let det = detect(name)?
+                .detections
+                .into_iter()
+                .next()
+                .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
+            let m = det
+                .mask
+                .as_ref()
+                .and_then(Mask::from_rle)
                 .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
             (Some(m), MaskUsed::Detected, Some(det))
         }

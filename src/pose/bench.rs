@@ -11,8 +11,8 @@ use std::time::Instant;
 use nalgebra::{Rotation3, Vector3};
 use serde::Serialize;
 
-use super::api::{detect_options, pick_detection};
-use super::geometry::{Intrinsics, Pose};
+use super::api::detect_options;
+use super::geometry::{projected_box, Intrinsics, Pose};
 use super::irls::{refine, IrlsParams};
 use super::mesh::Mesh;
 use super::render::{perturb, render, PoseScene};
@@ -102,6 +102,9 @@ pub struct BenchScene {
     pub start: Pose,
     /// The object's full extent in pixels, `(x, y, width, height)`.
     pub full_box: (f64, f64, f64, f64),
+    /// The box of the mesh at the start pose: where a client would say the
+    /// object is (the detector looks there).
+    pub start_box: Option<(f64, f64, f64, f64)>,
 }
 
 /// Renders `object` at a random pose over `background`, hidden by an
@@ -194,6 +197,7 @@ pub fn scene(
     );
     Ok(BenchScene {
         scene,
+        start_box: projected_box(&object.mesh.vertices, &CAMERA, &start),
         start,
         full_box,
     })
@@ -207,7 +211,8 @@ pub enum Method {
     Irls,
     /// The exact visible mask of the render.
     OrIrlsExact,
-    /// The refined mask of the detector's best detection.
+    /// The refined mask of the detector's best detection about the start
+    /// pose (as `mask: "detect"` finds it).
     OrIrlsSdhop,
 }
 
@@ -285,11 +290,10 @@ pub fn evaluate(
     run(Method::OrIrlsExact, Some(&bench.scene.visible), 0.0, false);
     if let Some(model) = detector {
         let t = Instant::now();
-        let expected = edges.projected_box(&CAMERA, &bench.start);
-        let mask = detect_image(img, &[model], &detect_options())
+        let mask = detect_image(img, &[model], &detect_options(bench.start_box))
             .ok()
-            .and_then(|r| pick_detection(r.detections, expected))
-            .map(|(_, m)| m);
+            .and_then(|r| r.detections.into_iter().next())
+            .and_then(|d| d.mask.as_ref().and_then(Mask::from_rle));
         let detect_ms = t.elapsed().as_secs_f64() * 1e3;
         let missed = mask.is_none();
         run(Method::OrIrlsSdhop, mask.as_ref(), detect_ms, missed);

@@ -68,7 +68,7 @@ pub struct DepthBuffer {
 /// camera are skipped.
 ///
 /// With `cull_back`, triangles facing away from the camera are skipped:
-/// right only for a closed mesh wound outwards (see [`is_solid`]).
+/// right only for a closed mesh wound outwards (see [`EdgeModel::solid`]).
 pub fn rasterize(
     vertices: &[Vector3<f64>],
     triangles: &[[u32; 3]],
@@ -79,17 +79,20 @@ pub fn rasterize(
     cull_back: bool,
 ) -> DepthBuffer {
     let cam: Vec<Vector3<f64>> = vertices.iter().map(|v| pose.transform(v)).collect();
-    // The window: the projections of the vertices in front of the camera
-    // (only triangles wholly in front are drawn), within the image.
+    // Each vertex projected once (the image of one in front of the camera;
+    // only triangles wholly in front are drawn).
+    let proj: Vec<Option<Vector2<f64>>> = cam
+        .iter()
+        .map(|q| if q.z > 1e-6 { k.project(q) } else { None })
+        .collect();
+    // The window: the projections within the image.
     let (mut lo, mut hi) = (
         Vector2::new(f64::INFINITY, f64::INFINITY),
         Vector2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
     );
-    for q in cam.iter().filter(|q| q.z > 1e-6) {
-        if let Some(s) = k.project(q) {
-            lo = lo.inf(&s);
-            hi = hi.sup(&s);
-        }
+    for s in proj.iter().flatten() {
+        lo = lo.inf(s);
+        hi = hi.sup(s);
     }
     let wx0 = lo.x.floor().clamp(0.0, width as f64) as usize;
     let wy0 = lo.y.floor().clamp(0.0, height as f64) as usize;
@@ -99,17 +102,17 @@ pub fn rasterize(
     let mut depth = vec![f32::INFINITY; ww * wh];
     let mut face = vec![u32::MAX; ww * wh];
     for (fi, t) in triangles.iter().enumerate() {
-        let p = t.map(|i| cam[i as usize]);
-        if p.iter().any(|q| q.z <= 1e-6) {
+        let (Some(s0), Some(s1), Some(s2)) = (
+            proj[t[0] as usize],
+            proj[t[1] as usize],
+            proj[t[2] as usize],
+        ) else {
             continue;
-        }
+        };
+        let p = t.map(|i| cam[i as usize]);
         if cull_back && (p[1] - p[0]).cross(&(p[2] - p[0])).dot(&p[0]) >= 0.0 {
             continue;
         }
-        let (Some(s0), Some(s1), Some(s2)) = (k.project(&p[0]), k.project(&p[1]), k.project(&p[2]))
-        else {
-            continue;
-        };
         let s = [s0, s1, s2];
         let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
         if area.abs() < 1e-12 {
@@ -189,31 +192,6 @@ pub fn rasterize(
     }
 }
 
-/// Whether the mesh bounds a solid seen from outside: every edge joins two
-/// triangles that run along it in opposite directions (closed and wound
-/// consistently) and the enclosed volume is positive (wound outwards, so
-/// [`Mesh::face_normals`] point out).
-pub fn is_solid(mesh: &Mesh) -> bool {
-    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
-    for t in &mesh.triangles {
-        for k in 0..3 {
-            *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
-        }
-    }
-    let closed = directed
-        .iter()
-        .all(|(&(a, b), &n)| n == 1 && a != b && directed.get(&(b, a)) == Some(&1));
-    let volume: f64 = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
-            a.dot(&b.cross(&c))
-        })
-        .sum();
-    closed && volume > 0.0
-}
-
 impl DepthBuffer {
     /// Index into the window's buffers of an image pixel, if in it.
     fn index(&self, x: isize, y: isize) -> Option<usize> {
@@ -245,22 +223,42 @@ impl EdgeModel {
     /// angle of a crease.
     pub fn new(mesh: &Mesh, crease_degrees: f64) -> Self {
         let normals = mesh.face_normals();
-        let mut map: HashMap<(u32, u32), Vec<u32>> = HashMap::new();
+        // Per undirected edge, its triangles and whether each runs along
+        // it from the lower vertex index to the higher.
+        let mut map: HashMap<(u32, u32), Vec<(u32, bool)>> = HashMap::new();
+        let mut degenerate = false;
         for (fi, t) in mesh.triangles.iter().enumerate() {
             for k in 0..3 {
                 let (a, b) = (t[k], t[(k + 1) % 3]);
                 if a != b {
-                    map.entry((a.min(b), a.max(b))).or_default().push(fi as u32);
+                    map.entry((a.min(b), a.max(b)))
+                        .or_default()
+                        .push((fi as u32, a < b));
+                } else {
+                    degenerate = true;
                 }
             }
         }
+        // Solid: every edge joins two triangles running along it in
+        // opposite directions (closed, consistently wound) and the volume
+        // is positive (wound outwards).
+        let volume: f64 = mesh
+            .triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| mesh.vertices[i as usize]);
+                a.dot(&b.cross(&c))
+            })
+            .sum();
+        let solid =
+            !degenerate && volume > 0.0 && map.values().all(|f| f.len() == 2 && f[0].1 != f[1].1);
         let cos_crease = crease_degrees.to_radians().cos();
         let mut edges: Vec<Edge> = map
             .into_iter()
             .map(|((a, b), faces)| {
                 let boundary = faces.len() != 2;
-                let f0 = faces[0];
-                let f1 = *faces.get(1).unwrap_or(&f0);
+                let f0 = faces[0].0;
+                let f1 = faces.get(1).map_or(f0, |f| f.0);
                 let crease =
                     boundary || normals[f0 as usize].dot(&normals[f1 as usize]) < cos_crease;
                 Edge {
@@ -287,7 +285,7 @@ impl EdgeModel {
             )
         });
         Self {
-            solid: is_solid(mesh),
+            solid,
             corners,
             vertices: mesh.vertices.clone(),
             triangles: mesh.triangles.clone(),
@@ -309,20 +307,10 @@ impl EdgeModel {
         )
     }
 
-    /// The box `(x, y, w, h)` of the vertices projected at `pose` (those in
-    /// front of the camera), if any.
-    pub fn projected_box(&self, k: &Intrinsics, pose: &Pose) -> Option<(f64, f64, f64, f64)> {
-        let mut lo = Vector2::new(f64::INFINITY, f64::INFINITY);
-        let mut hi = Vector2::new(f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for p in self
-            .vertices
-            .iter()
-            .filter_map(|v| k.project(&pose.transform(v)))
-        {
-            lo = lo.inf(&p);
-            hi = hi.sup(&p);
-        }
-        (lo.x <= hi.x && lo.y <= hi.y).then(|| (lo.x, lo.y, hi.x - lo.x, hi.y - lo.y))
+    /// Whether the mesh bounds a solid seen from outside: closed, wound
+    /// consistently and outwards (the depth buffer then skips back faces).
+    pub fn solid(&self) -> bool {
+        self.solid
     }
 
     /// The 8 corners of the vertices' axis-aligned box (object
@@ -460,6 +448,7 @@ mod tests {
 
     #[test]
     fn solids_are_closed_consistent_and_wound_outwards() {
+        let is_solid = |m: &Mesh| EdgeModel::new(m, 30.0).solid();
         let cube = Mesh::cuboid(0.1, 0.1, 0.1);
         assert!(is_solid(&cube));
         assert!(is_solid(&Mesh::rounded_box(0.1, 0.06, 0.16, 0.025, 4)));
@@ -506,7 +495,7 @@ mod tests {
                         rng.range_f64(0.25, 0.5),
                     ),
                 };
-                assert!(is_solid(mesh));
+                assert!(EdgeModel::new(mesh, 30.0).solid());
                 // Culling the back faces of a solid changes nothing.
                 let cull = rng.next_f64() < 0.5;
                 let d = rasterize(&mesh.vertices, &mesh.triangles, &k, &pose, 80, 60, cull);

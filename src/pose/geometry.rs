@@ -144,6 +144,22 @@ impl Pose {
     }
 }
 
+/// The box `(x, y, w, h)` of `points` (object coordinates) projected at
+/// `pose`, those in front of the camera; `None` when none is.
+pub fn projected_box(
+    points: &[Vector3<f64>],
+    k: &Intrinsics,
+    pose: &Pose,
+) -> Option<(f64, f64, f64, f64)> {
+    let mut lo = Vector2::new(f64::INFINITY, f64::INFINITY);
+    let mut hi = Vector2::new(f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for p in points.iter().filter_map(|v| k.project(&pose.transform(v))) {
+        lo = lo.inf(&p);
+        hi = hi.sup(&p);
+    }
+    (lo.x <= hi.x && lo.y <= hi.y).then(|| (lo.x, lo.y, hi.x - lo.x, hi.y - lo.y))
+}
+
 /// The rotation nearest to `m` in the Frobenius norm (`U diag(1, 1, d) V^T`).
 pub fn nearest_rotation(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
     let svd = m.svd(true, true);

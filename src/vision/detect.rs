@@ -45,6 +45,20 @@ pub struct DetectParams {
     /// Skip locations whose bound shows they cannot matter.
     pub prune: bool,
     pub refine: RefineParams,
+    /// Only boxes about here (a request's setting, never a model's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub region: Option<Region>,
+}
+
+/// Where the object is known to be roughly: a location is scanned only
+/// when its (full-object) box overlaps `bbox` by an IoU of at least
+/// `min_iou`. With one detection asked for, the exact pruning then solves
+/// far fewer locations.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Region {
+    /// `(x, y, width, height)` in pixels.
+    pub bbox: (f64, f64, f64, f64),
+    pub min_iou: f64,
 }
 
 impl Default for DetectParams {
@@ -56,6 +70,7 @@ impl Default for DetectParams {
             max_truncation: 0.5,
             prune: true,
             refine: RefineParams::default(),
+            region: None,
         }
     }
 }
@@ -66,7 +81,17 @@ impl DetectParams {
             && (0.0..=1.0).contains(&self.nms_iou)
             && (0.0..1.0).contains(&self.max_truncation)
             && self.refine.fill.is_finite()
-            && self.refine.clear.is_finite();
+            && self.refine.clear.is_finite()
+            && self.region.is_none_or(|r| {
+                let (x, y, w, h) = r.bbox;
+                x.is_finite()
+                    && y.is_finite()
+                    && w > 0.0
+                    && h > 0.0
+                    && w.is_finite()
+                    && h.is_finite()
+                    && (0.0..=1.0).contains(&r.min_iou)
+            });
         if ok {
             Ok(())
         } else {
@@ -1112,6 +1137,11 @@ impl<'a> Detector<'a> {
         for (count, c) in scanned {
             stats.locations += count;
             cands.extend(c);
+        }
+        if let Some(r) = params.region {
+            cands.retain(|c| {
+                box_iou(self.grid(pyr, &c.location()).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
+            });
         }
         stats.pruned_stage1 = stats.locations - cands.len();
         stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
