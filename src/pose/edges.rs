@@ -58,7 +58,9 @@ pub struct DepthBuffer {
     pub height: usize,
     /// The window: left, top, width, height (within the image).
     window: (usize, usize, usize, usize),
-    depth: Vec<f32>,
+    /// Inverse depth, 0 where no surface: the nearest surface is the
+    /// largest, and no pixel pays a division.
+    inv_depth: Vec<f32>,
     /// Index of the nearest triangle; `u32::MAX` where none.
     face: Vec<u32>,
 }
@@ -99,7 +101,7 @@ pub fn rasterize(
     let wx1 = (hi.x.ceil() + 1.0).clamp(0.0, width as f64) as usize;
     let wy1 = (hi.y.ceil() + 1.0).clamp(0.0, height as f64) as usize;
     let (ww, wh) = (wx1.saturating_sub(wx0), wy1.saturating_sub(wy0));
-    let mut depth = vec![f32::INFINITY; ww * wh];
+    let mut inv_depth = vec![0.0f32; ww * wh];
     let mut face = vec![u32::MAX; ww * wh];
     for (fi, t) in triangles.iter().enumerate() {
         let (Some(s0), Some(s1), Some(s2)) = (
@@ -173,13 +175,15 @@ pub fn rasterize(
             let ir = r[0] * iz[0] + r[1] * iz[1] + r[2] * iz[2];
             // Inside the window: the triangle's box lies within it.
             let row = (y - wy0) * ww;
-            for x in xs..=xe {
-                let z = (1.0 / (ir + ibx * (x as f64 + 0.5))) as f32;
-                let i = row + x - wx0;
-                if z < depth[i] {
-                    depth[i] = z;
-                    face[i] = fi as u32;
+            let span = row + xs - wx0..=row + xe - wx0;
+            let mut inv = ir + ibx * (xs as f64 + 0.5);
+            for (d, f) in inv_depth[span.clone()].iter_mut().zip(&mut face[span]) {
+                let v = inv as f32;
+                if v > *d {
+                    *d = v;
+                    *f = fi as u32;
                 }
+                inv += ibx;
             }
         }
     }
@@ -187,7 +191,7 @@ pub fn rasterize(
         width,
         height,
         window: (wx0, wy0, ww, wh),
-        depth,
+        inv_depth,
         face,
     }
 }
@@ -203,7 +207,10 @@ impl DepthBuffer {
 
     /// Depth at an image pixel (infinity where no surface or outside).
     pub fn at(&self, x: isize, y: isize) -> f32 {
-        self.index(x, y).map_or(f32::INFINITY, |i| self.depth[i])
+        self.index(x, y)
+            .map(|i| self.inv_depth[i])
+            .filter(|&v| v > 0.0)
+            .map_or(f32::INFINITY, |v| 1.0 / v)
     }
 
     /// The triangle seen at an image pixel, if any.
