@@ -651,6 +651,15 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
             400,
         ),
         (
+            // Read to its end before the query is refused: the client
+            // gets the 400, not a connection reset while still sending.
+            "malformed query with a 3 MB body",
+            detect("?max_detections=lots")
+                .header(CONTENT_TYPE, "image/png")
+                .body(vec![7u8; 3 << 20]),
+            400,
+        ),
+        (
             "unknown parameter",
             detect("?colour=red")
                 .header(CONTENT_TYPE, "image/png")

@@ -229,19 +229,22 @@ pub async fn detect(
     RawQuery(raw): RawQuery,
     req: Request,
 ) -> Result<Response, ApiError> {
+    let arrived = Instant::now();
     let cfg = state.config;
-    let query = DetectQuery::parse(raw.as_deref(), cfg.max_detections, cfg.max_timeout)?;
-    let deadline = Instant::now() + query.timeout.unwrap_or(cfg.default_timeout);
-    let models = select_models(&state, &query.models)?;
     // Admission before reading or decoding anything: an overload costs no
     // work and no memory beyond the queue's.
     let permit = state.infer.admit()?;
-    let format = query.format.unwrap_or(if accepts_png(req.headers()) {
-        Format::Png
-    } else {
-        Format::Json
-    });
+    let wants_png = accepts_png(req.headers());
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
+    // The query after the body (as for /pose), so that a client sending a
+    // large body with a bad query reads the 400 rather than a reset
+    // connection.
+    let query = DetectQuery::parse(raw.as_deref(), cfg.max_detections, cfg.max_timeout)?;
+    let deadline = arrived + query.timeout.unwrap_or(cfg.default_timeout);
+    let models = select_models(&state, &query.models)?;
+    let format = query
+        .format
+        .unwrap_or(if wants_png { Format::Png } else { Format::Json });
     let limits = cfg.image;
     let image = tokio::task::spawn_blocking(move || decode(&bytes, &limits))
         .await
