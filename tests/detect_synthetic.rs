@@ -31,6 +31,21 @@ fn scenes(n: u64) -> Vec<Scene> {
         .collect()
 }
 
+/// The hand-built model and `n` scenes with their pyramids.
+fn scanned_scenes(n: u64) -> (Model, Vec<(Scene, FeaturePyramid)>) {
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let scenes = scenes(n)
+        .into_iter()
+        .map(|s| {
+            let pyr =
+                FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation)
+                    .unwrap();
+            (s, pyr)
+        })
+        .collect();
+    (model, scenes)
+}
+
 /// Mean box IoU and mean visible-mask IoU of the top detection (a miss
 /// counts 0 for both).
 fn evaluate(model: &Model, scenes: &[Scene], masks: MaskMode) -> (f64, f64) {
@@ -80,12 +95,9 @@ fn finds_full_box_and_visible_mask_and_beats_plain_hog() {
 
 #[test]
 fn pruning_returns_exactly_the_unpruned_detections() {
-    let scenes = scenes(3);
-    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let (model, scenes) = scanned_scenes(3);
     let detector = Detector::new(&model.views).unwrap();
-    for s in &scenes {
-        let pyr =
-            FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+    for (_, pyr) in &scenes {
         // Low thresholds keep many locations alive, so the early stop of
         // the min-cut is what prunes there.
         let t0 = model.meta.detection.threshold;
@@ -96,9 +108,9 @@ fn pruning_returns_exactly_the_unpruned_detections() {
                 ..model.meta.detection
             };
             p.prune = true;
-            let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
+            let (pruned, st_p) = detector.detect(pyr, &p).unwrap();
             p.prune = false;
-            let (full, st_f) = detector.detect(&pyr, &p).unwrap();
+            let (full, st_f) = detector.detect(pyr, &p).unwrap();
             assert_eq!(
                 pruned, full,
                 "threshold {threshold}, max_detections {max_detections}"
@@ -115,12 +127,9 @@ fn pruning_returns_exactly_the_unpruned_detections() {
 
 #[test]
 fn a_region_keeps_only_boxes_about_there_and_pruning_stays_exact() {
-    let scenes = scenes(3);
-    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let (model, scenes) = scanned_scenes(3);
     let detector = Detector::new(&model.views).unwrap();
-    for s in &scenes {
-        let pyr =
-            FeaturePyramid::build(&s.image, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+    for (s, pyr) in &scenes {
         let (tx, ty, tw, th) = s.truth_box;
         // The object's own box, and one as large where it is not.
         let away = (
@@ -139,9 +148,9 @@ fn a_region_keeps_only_boxes_about_there_and_pruning_stays_exact() {
                 ..model.meta.detection
             };
             p.prune = true;
-            let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
+            let (pruned, st_p) = detector.detect(pyr, &p).unwrap();
             p.prune = false;
-            let (full, st_f) = detector.detect(&pyr, &p).unwrap();
+            let (full, st_f) = detector.detect(pyr, &p).unwrap();
             assert_eq!(pruned, full);
             assert!(st_p.min_cuts <= st_f.min_cuts);
             for d in &full {
@@ -167,7 +176,7 @@ fn a_region_keeps_only_boxes_about_there_and_pruning_stays_exact() {
                 region: Some(region),
                 ..model.meta.detection
             };
-            assert!(detector.detect(&pyr, &p).is_err());
+            assert!(detector.detect(pyr, &p).is_err());
         }
         // About the object the detection is the object; away from it, any
         // detection scores lower.
