@@ -146,6 +146,7 @@ pub fn rasterize(
         let bx = [e0.1, e1.1, -e0.1 - e1.1];
         // Inverse depth is affine too: sum of w_i / z_i.
         let ibx = bx[0] * iz[0] + bx[1] * iz[1] + bx[2] * iz[2];
+        let inv_bx = bx.map(|b| if b != 0.0 { 1.0 / b } else { 0.0 });
         for y in y0..=y1 {
             let yc = y as f64 + 0.5;
             let r = [e0.0 + e0.2 * yc, e1.0 + e1.2 * yc];
@@ -154,7 +155,7 @@ pub fn rasterize(
             // at least -1e-9: an interval, from each affine weight.
             let (mut lo, mut hi) = (x0 as f64 + 0.5, x1 as f64 + 0.5);
             for i in 0..3 {
-                let bound = (-1e-9 - r[i]) / bx[i];
+                let bound = (-1e-9 - r[i]) * inv_bx[i];
                 if bx[i] > 0.0 {
                     lo = lo.max(bound);
                 } else if bx[i] < 0.0 {
@@ -166,12 +167,14 @@ pub fn rasterize(
             if lo.is_nan() || hi.is_nan() || lo > hi {
                 continue;
             }
-            let xs = (lo - 0.5).ceil().max(x0 as f64) as usize;
-            let xe = (hi - 0.5).floor().min(x1 as f64);
-            if xe < xs as f64 {
+            // lo - 0.5 and hi - 0.5 lie in [x0, x1], so not negative:
+            // truncation floors (std's floor and ceil are calls here).
+            let (a, b) = (lo - 0.5, hi - 0.5);
+            let xs = a as usize + usize::from((a as usize as f64) < a);
+            let xe = b as usize;
+            if xe < xs {
                 continue;
             }
-            let xe = xe as usize;
             let ir = r[0] * iz[0] + r[1] * iz[1] + r[2] * iz[2];
             // Inside the window: the triangle's box lies within it.
             let row = (y - wy0) * ww;

@@ -92,7 +92,7 @@ impl IrlsParams {
             && self.sample_step >= 0.5
             && self.search_range.is_finite()
             && self.search_range > 0.0
-            && self.search_range <= 200.0
+            && self.search_range <= MAX_RANGE as f64
             && self.min_gradient.is_finite()
             && (0.0..90.0).contains(&self.max_angle_degrees)
             && (0.0..180.0).contains(&self.crease_degrees)
@@ -188,6 +188,9 @@ pub const AGREE_PX: f64 = 1.0;
 /// Tracks closer than this (mean corner motion, pixels) merge.
 const MERGE_PX: f64 = 0.5;
 
+/// The largest search range (pixels each way).
+const MAX_RANGE: usize = 200;
+
 /// Edge hypotheses kept per sample.
 const HYPOTHESES: usize = 3;
 
@@ -225,32 +228,51 @@ fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTH
             None => 0.0,
         }
     };
-    let values: Vec<f64> = (-range - 1..=range + 1)
-        .map(|t| strength(t as f64))
-        .collect();
+    // The profile along the normal, on the stack (the range is at most
+    // MAX_RANGE: `IrlsParams::validate`).
+    let mut values = [0.0f64; 2 * MAX_RANGE + 3];
+    let n = (2 * range + 3) as usize;
+    for (i, v) in values[..n].iter_mut().enumerate() {
+        *v = strength((i as i64 - range - 1) as f64);
+    }
     let at = |t: i64| values[(t + range + 1) as usize];
-    // Local maxima, strongest first (nearer first among equals).
-    let mut peaks: Vec<(f64, i64)> = (-range..=range)
-        .filter(|&t| {
-            let v = at(t);
-            v > 0.0
-                && v >= at(t - 1)
-                && v >= at(t + 1)
-                && !(v == at(t - 1) && t > 0)
-                && !(v == at(t + 1) && t < 0)
-        })
-        .map(|t| (at(t), t))
-        .collect();
-    if peaks.is_empty() {
+    // The strongest local maxima, strongest first (nearer first among
+    // equals, then the earlier), kept by insertion.
+    let mut peaks = [(0.0f64, 0i64); HYPOTHESES];
+    let mut found = 0;
+    for t in -range..=range {
+        let v = at(t);
+        let peak = v > 0.0
+            && v >= at(t - 1)
+            && v >= at(t + 1)
+            && !(v == at(t - 1) && t > 0)
+            && !(v == at(t + 1) && t < 0);
+        if !peak {
+            continue;
+        }
+        let better = |q: &(f64, i64)| v > q.0 || (v == q.0 && t.abs() < q.1.abs());
+        let Some(pos) = (0..found.min(HYPOTHESES))
+            .find(|&i| better(&peaks[i]))
+            .or((found < HYPOTHESES).then_some(found))
+        else {
+            continue;
+        };
+        let last = found.min(HYPOTHESES - 1);
+        for i in (pos..last).rev() {
+            peaks[i + 1] = peaks[i];
+        }
+        peaks[pos] = (v, t);
+        found = (found + 1).min(HYPOTHESES);
+    }
+    if found == 0 {
         return None;
     }
-    peaks.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.abs().cmp(&b.1.abs())));
     // Only edges of comparable strength compete with the strongest.
     let floor = 0.5 * peaks[0].0;
-    peaks.retain(|p| p.0 >= floor);
+    let peaks = &peaks[..peaks[..found].iter().take_while(|p| p.0 >= floor).count()];
     let mut out = [0.0; HYPOTHESES];
-    let count = peaks.len().min(HYPOTHESES);
-    for (o, &(v0, t)) in out.iter_mut().zip(&peaks) {
+    let count = peaks.len();
+    for (o, &(v0, t)) in out.iter_mut().zip(peaks) {
         let (vm, vp) = (at(t - 1), at(t + 1));
         let denom = vm - 2.0 * v0 + vp;
         let sub = if denom < -1e-12 {
@@ -798,6 +820,97 @@ pub fn refine(
 mod tests {
     use super::*;
     use crate::vision::rng::SplitMix64;
+
+    /// The search by its definition: every local maximum, sorted by
+    /// strength (nearer, then earlier, first among equals), those under
+    /// half the strongest dropped, the first HYPOTHESES kept.
+    fn search_reference(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Vec<f64> {
+        let range = p.search_range.round() as i64;
+        let cos_max = p.max_angle_degrees.to_radians().cos();
+        let strength = |t: i64| match g.at(&(s.pixel + s.normal * t as f64)) {
+            Some(v) => {
+                let along = v.dot(&s.normal).abs();
+                let m = v.norm();
+                if m >= p.min_gradient && along >= cos_max * m {
+                    along
+                } else {
+                    0.0
+                }
+            }
+            None => 0.0,
+        };
+        let mut peaks: Vec<(f64, i64)> = (-range..=range)
+            .filter(|&t| {
+                let v = strength(t);
+                v > 0.0
+                    && v >= strength(t - 1)
+                    && v >= strength(t + 1)
+                    && !(v == strength(t - 1) && t > 0)
+                    && !(v == strength(t + 1) && t < 0)
+            })
+            .map(|t| (strength(t), t))
+            .collect();
+        peaks.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.abs().cmp(&b.1.abs())));
+        let floor = peaks.first().map_or(0.0, |p| 0.5 * p.0);
+        peaks
+            .iter()
+            .filter(|p| p.0 >= floor)
+            .take(HYPOTHESES)
+            .map(|&(v0, t)| {
+                let (vm, vp) = (strength(t - 1), strength(t + 1));
+                let denom = vm - 2.0 * v0 + vp;
+                let sub = if denom < -1e-12 {
+                    (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
+                } else {
+                    0.0
+                };
+                t as f64 + sub
+            })
+            .collect()
+    }
+
+    #[test]
+    fn search_keeps_the_strongest_peaks_as_defined() {
+        let mut rng = SplitMix64::new(17);
+        let (w, h) = (64, 48);
+        // Blocks of grey levels, noise only on the right half: exact
+        // block steps make peaks of equal strength (ties to order).
+        let data: Vec<f32> = (0..w * h)
+            .flat_map(|i| {
+                let (x, y) = (i % w, i / w);
+                let block = ((x / 5) * 31 + (y / 7) * 17) % 9;
+                let v = (block * 28) as f32;
+                [v, v, v].map(|c| (x, c))
+            })
+            .map(|(x, v)| {
+                if x >= w / 2 {
+                    v + (rng.next_f64() * 3.0) as f32
+                } else {
+                    v
+                }
+            })
+            .collect();
+        let g = Gradients::new(&ColorImage::new(w, h, data).unwrap());
+        let mut compared = 0;
+        for i in 0..400 {
+            let angle = rng.range_f64(0.0, std::f64::consts::TAU);
+            let s = EdgeSample {
+                point: Vector3::zeros(),
+                pixel: Vector2::new(rng.range_f64(0.0, w as f64), rng.range_f64(0.0, h as f64)),
+                normal: Vector2::new(angle.cos(), angle.sin()),
+            };
+            let p = IrlsParams {
+                search_range: [1.0, 3.0, 7.5, 30.0][i % 4],
+                ..IrlsParams::default()
+            };
+            let want = search_reference(&g, &s, &p);
+            let got = search(&g, &s, &p).map_or(Vec::new(), |(o, n)| o[..n].to_vec());
+            assert_eq!(got, want, "sample {s:?}, range {}", p.search_range);
+            compared += usize::from(want.len() > 1);
+        }
+        // Enough samples had several hypotheses to compare their order.
+        assert!(compared > 20, "{compared}");
+    }
 
     #[test]
     fn mask_distance_equals_the_square_neighbourhood_test() {
