@@ -51,9 +51,12 @@ pub struct IrlsParams {
     /// within this many pixels of the visibility mask (edges lie on the
     /// mask's border).
     pub mask_margin_px: usize,
-    /// Restarts turn the initial pose this many degrees either way about
-    /// each camera axis (0: none); see [`restart_poses`].
+    /// Restarts turn the initial pose this many degrees (and multiples, see
+    /// `restart_rings`) either way about each camera axis (0: none); see
+    /// [`restart_poses`].
     pub restart_degrees: f64,
+    /// Rings of turned restarts: at `restart_degrees`, twice that, ...
+    pub restart_rings: usize,
     /// Restarts move the initial pose this share of its distance nearer
     /// and farther (0: none).
     pub restart_depth: f64,
@@ -77,6 +80,7 @@ impl Default for IrlsParams {
             max_step_px: 4.0,
             mask_margin_px: 3,
             restart_degrees: 10.0,
+            restart_rings: 1,
             restart_depth: 0.02,
             prior_weight: 4.0,
         }
@@ -101,6 +105,7 @@ impl IrlsParams {
             && self.max_step_px > 0.0
             && self.mask_margin_px <= 50
             && (0.0..=45.0).contains(&self.restart_degrees)
+            && self.restart_rings <= 4
             && (0.0..0.5).contains(&self.restart_depth)
             && self.prior_weight.is_finite()
             && self.prior_weight >= 0.0;
@@ -673,16 +678,18 @@ impl Context<'_> {
     }
 }
 
-/// The start poses of the restarts: `initial`, then turned by
-/// `degrees` either way about the camera's x, y and z axes through the
-/// object's origin, then moved along its viewing ray by `depth` of its
-/// distance either way (the directions an edge fit confuses most).
-pub fn restart_poses(initial: &Pose, degrees: f64, depth: f64) -> Vec<Pose> {
+/// The start poses of the restarts: `initial`, then turned by `degrees`,
+/// twice that, ... (`rings` of them) either way about the camera's x, y
+/// and z axes through the object's origin, then moved along its viewing
+/// ray by `depth` of its distance either way (the directions an edge fit
+/// confuses most).
+pub fn restart_poses(initial: &Pose, degrees: f64, rings: usize, depth: f64) -> Vec<Pose> {
     let mut out = vec![*initial];
-    if degrees > 0.0 {
+    for ring in (1..=rings).filter(|_| degrees > 0.0) {
+        let angle = (ring as f64 * degrees).to_radians();
         for axis in [Vector3::x(), Vector3::y(), Vector3::z()] {
             for sign in [-1.0, 1.0] {
-                let turn = nalgebra::Rotation3::new(axis * (sign * degrees.to_radians()));
+                let turn = nalgebra::Rotation3::new(axis * (sign * angle));
                 out.push(Pose {
                     rotation: turn.into_inner() * initial.rotation,
                     translation: initial.translation,
@@ -706,12 +713,11 @@ pub fn restart_poses(initial: &Pose, degrees: f64, depth: f64) -> Vec<Pose> {
 ///
 /// Edge fits from one start are captured by the wrong edges in clutter or
 /// when little of the object is visible, so the refinement restarts from
-/// poses around `initial` (see [`restart_poses`]): every start runs
-/// through the coarse iterations (the search range shrinking), the
-/// [`KEEP`] whose edges then agree best with the image run on to
-/// convergence, and the one that agrees best at the end is the answer
-/// (agreement: visible model edge samples with an image edge within
-/// [`AGREE_PX`], in the mask).
+/// poses around `initial` (see [`restart_poses`]). The tracks run to
+/// convergence together (tracks that meet merge), and the answer is the
+/// one with the best score: its visible model edge samples with an image
+/// edge within [`AGREE_PX`] in the mask, less a prior on how far it moved
+/// from `initial` (see `Context::score`).
 pub fn refine(
     img: &ColorImage,
     edges: &EdgeModel,
@@ -748,7 +754,12 @@ pub fn refine(
         converged: false,
         last: (0.0, 0, 0, Matrix6::zeros()),
     };
-    let starts = restart_poses(initial, params.restart_degrees, params.restart_depth);
+    let starts = restart_poses(
+        initial,
+        params.restart_degrees,
+        params.restart_rings,
+        params.restart_depth,
+    );
     // All tracks advance together, an iteration at a time (in parallel);
     // a track that comes within MERGE_PX of an earlier one (same iteration,
     // so same search range from here on) follows it, and is dropped.
