@@ -212,27 +212,30 @@ struct Match {
     count: usize,
 }
 
+/// The gradient along the sample's normal at `t` pixels along it, where the
+/// gradient is strong enough and within the angle of the normal (else 0).
+fn edge_strength(g: &Gradients, s: &EdgeSample, p: &IrlsParams, cos_max: f64, t: f64) -> f64 {
+    match g.at(&(s.pixel + s.normal * t)) {
+        Some(v) => {
+            let along = v.dot(&s.normal).abs();
+            let m = v.norm();
+            if m >= p.min_gradient && along >= cos_max * m {
+                along
+            } else {
+                0.0
+            }
+        }
+        None => 0.0,
+    }
+}
+
 /// Searches along the sample's normal for the strongest compatible edges
 /// (local maxima of the gradient along the normal, up to [`HYPOTHESES`]),
 /// each with a parabolic sub-pixel refinement; ties go to the nearer one.
 fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTHESES], usize)> {
     let range = p.search_range.round() as i64;
     let cos_max = p.max_angle_degrees.to_radians().cos();
-    let strength = |t: f64| -> f64 {
-        let q = s.pixel + s.normal * t;
-        match g.at(&q) {
-            Some(v) => {
-                let along = v.dot(&s.normal).abs();
-                let m = v.norm();
-                if m >= p.min_gradient && along >= cos_max * m {
-                    along
-                } else {
-                    0.0
-                }
-            }
-            None => 0.0,
-        }
-    };
+    let strength = |t: f64| edge_strength(g, s, p, cos_max, t);
     // The profile along the normal, on the stack (the range is at most
     // MAX_RANGE: `IrlsParams::validate`).
     let mut values = [0.0f64; 2 * MAX_RANGE + 3];
@@ -838,18 +841,7 @@ mod tests {
     fn search_reference(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Vec<f64> {
         let range = p.search_range.round() as i64;
         let cos_max = p.max_angle_degrees.to_radians().cos();
-        let strength = |t: i64| match g.at(&(s.pixel + s.normal * t as f64)) {
-            Some(v) => {
-                let along = v.dot(&s.normal).abs();
-                let m = v.norm();
-                if m >= p.min_gradient && along >= cos_max * m {
-                    along
-                } else {
-                    0.0
-                }
-            }
-            None => 0.0,
-        };
+        let strength = |t: i64| edge_strength(g, s, p, cos_max, t as f64);
         let mut peaks: Vec<(f64, i64)> = (-range..=range)
             .filter(|&t| {
                 let v = strength(t);
