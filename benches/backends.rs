@@ -13,13 +13,13 @@ use std::time::Instant;
 use sdhop::backend::{model_bounds, Backend, CpuBackend, FeatureJob, GpuBackend, GpuOptions};
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions, MaskMode};
-use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+use sdhop::synth::{hand_model, HandModelParams, SynthObject};
 use sdhop::vision::detect::DenseBounds;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::pyramid::FeaturePyramid;
 
 mod common;
-use common::{arg, median};
+use common::{arg, median, vga_scenes};
 
 /// Stage times of one batch, per image: pyramids, bounds, min-cuts+masks,
 /// total; and the backend's own features time.
@@ -87,20 +87,9 @@ fn main() {
                 paths.iter().filter_map(|p| Model::load(p).ok()).collect()
             })
             .unwrap_or_default();
-    let images: Vec<ColorImage> = (0..batch.max(4) as u64)
-        .map(|seed| {
-            scene(
-                &obj,
-                &SceneParams {
-                    width: 640,
-                    height: 480,
-                    seed,
-                    ..SceneParams::default()
-                },
-            )
-            .expect("scene")
-            .image
-        })
+    let images: Vec<ColorImage> = vga_scenes(&obj, batch.max(4) as u64)
+        .into_iter()
+        .map(|s| s.image)
         .collect();
     let mut backends: Vec<(String, Box<dyn Backend>)> = vec![("cpu".into(), Box::new(CpuBackend))];
     match GpuBackend::new(&GpuOptions {

@@ -7,10 +7,10 @@
 use std::time::Instant;
 
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
-use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+use sdhop::synth::{hand_model, HandModelParams, SynthObject};
 
 mod common;
-use common::{arg, median};
+use common::{arg, median, vga_scenes};
 
 fn main() {
     let iters = arg("--iters", 30usize);
@@ -20,20 +20,7 @@ fn main() {
         seed: 3,
     };
     let model = hand_model(&obj, "synthetic", true, &HandModelParams::default()).expect("model");
-    let scenes: Vec<_> = (0..5u64)
-        .map(|seed| {
-            scene(
-                &obj,
-                &SceneParams {
-                    width: 640,
-                    height: 480,
-                    seed,
-                    ..SceneParams::default()
-                },
-            )
-            .expect("scene")
-        })
-        .collect();
+    let scenes = vga_scenes(&obj, 5);
     println!("threads: {}", rayon::current_num_threads());
     for (mode, max_det, prune) in [
         ("top-1", 1, true),

@@ -1183,8 +1183,19 @@ async fn service_json_equals_the_cli_json() {
     );
     let mut cli: Value = serde_json::from_slice(&out.stdout).unwrap();
     let server = Server::default().await;
-    let mut svc: Value = reqwest::Client::new()
-        .post(server.url("/detect?model=synthetic&masks=both"))
+    let svc = detect_json(&reqwest::Client::new(), &server.url(""), png).await;
+    // Timings differ from run to run; everything else is the same.
+    cli.as_object_mut().unwrap().remove("timing_ms");
+    assert!(!svc["detections"].as_array().unwrap().is_empty());
+    assert_eq!(cli, svc);
+    assert!(server.stop().await);
+}
+
+/// The JSON of `POST /detect?model=synthetic&masks=both` for a PNG at
+/// `base`, without its timings (they differ from run to run).
+async fn detect_json(c: &reqwest::Client, base: &str, png: Vec<u8>) -> Value {
+    let mut v: Value = c
+        .post(format!("{base}/detect?model=synthetic&masks=both"))
         .header(CONTENT_TYPE, "image/png")
         .body(png)
         .send()
@@ -1193,12 +1204,8 @@ async fn service_json_equals_the_cli_json() {
         .json()
         .await
         .unwrap();
-    // Timings differ from run to run; everything else is the same.
-    cli.as_object_mut().unwrap().remove("timing_ms");
-    svc.as_object_mut().unwrap().remove("timing_ms");
-    assert!(!svc["detections"].as_array().unwrap().is_empty());
-    assert_eq!(cli, svc);
-    assert!(server.stop().await);
+    v.as_object_mut().unwrap().remove("timing_ms");
+    v
 }
 
 async fn info_backend(base: &str) -> Value {
@@ -1268,32 +1275,12 @@ async fn backend_choice_is_honoured_and_reported() {
     // The GPU service answers as the CPU one does (timings aside).
     let png = encode(&synthetic_scene(12, 320, 240), image::ImageFormat::Png);
     let c = reqwest::Client::new();
-    let mut gpu: Value = c
-        .post(format!("{base}/detect?model=synthetic&masks=both"))
-        .header(CONTENT_TYPE, "image/png")
-        .body(png.clone())
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let mut gpu = detect_json(&c, &base, png.clone()).await;
     child.kill().unwrap();
     child.wait().unwrap();
     let server = Server::default().await;
-    let mut cpu: Value = c
-        .post(server.url("/detect?model=synthetic&masks=both"))
-        .header(CONTENT_TYPE, "image/png")
-        .body(png)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let mut cpu = detect_json(&c, &server.url(""), png).await;
     assert!(server.stop().await);
-    gpu.as_object_mut().unwrap().remove("timing_ms");
-    cpu.as_object_mut().unwrap().remove("timing_ms");
     assert!(!cpu["detections"].as_array().unwrap().is_empty());
     // Scores may differ by float round-off on a real GPU; all else agrees.
     for doc in [&mut gpu, &mut cpu] {

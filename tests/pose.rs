@@ -203,11 +203,7 @@ fn cli_refines_a_pose_with_a_given_mask_and_refuses_bad_meshes() {
             .unwrap()
     };
     let out = run("box.ply");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["mask_source"], "provided");
     let r = &v["pose"]["rotation"];
@@ -254,11 +250,7 @@ fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
         .arg(&dir)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     for object in ["box", "bottle"] {
         let loaded = sdhop::dataset::load_coco(&dir.join("coco.json"), &dir, object).unwrap();
         assert!(loaded.skipped.is_empty(), "{:?}", loaded.skipped);
@@ -297,11 +289,7 @@ fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
         .arg(&report)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert_succeeded(&out);
     let doc: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
     let results = doc["results"].as_array().unwrap();
@@ -328,4 +316,13 @@ fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Asserts that a CLI run exited 0, showing its stderr otherwise.
+fn assert_succeeded(out: &std::process::Output) {
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -15,3 +15,22 @@ pub fn arg<T: std::str::FromStr>(name: &str, default: T) -> T {
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
 }
+
+/// `n` synthetic 640x480 scenes of `obj`, seeds 0 to n - 1.
+#[allow(dead_code)] // not every bench draws scenes
+pub fn vga_scenes(obj: &sdhop::synth::SynthObject, n: u64) -> Vec<sdhop::synth::Scene> {
+    (0..n)
+        .map(|seed| {
+            sdhop::synth::scene(
+                obj,
+                &sdhop::synth::SceneParams {
+                    width: 640,
+                    height: 480,
+                    seed,
+                    ..sdhop::synth::SceneParams::default()
+                },
+            )
+            .expect("scene")
+        })
+        .collect()
+}

@@ -397,68 +397,6 @@ pub fn residual_and_jacobian(
     Some((r, Vector6::new(a.x, a.y, a.z, w.x, w.y, w.z)))
 }
 
-/// Counts of how well the model's edges at `pose` agree with the image.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Agreement {
-    /// Visible model edge samples in the image.
-    pub samples: usize,
-    /// Those in the mask (all without one).
-    pub inside: usize,
-    /// Those in the mask with a compatible image edge, also in the mask,
-    /// within the tolerance along their normal.
-    pub matched: usize,
-}
-
-/// How well the model's edges at `pose` agree with the image (see
-/// [`Agreement`]); the mask counts grown by the margin.
-pub fn agreement(
-    grads: &Gradients,
-    edges: &EdgeModel,
-    k: &Intrinsics,
-    pose: &Pose,
-    mask: Option<&MaskDistance>,
-    params: &IrlsParams,
-    tolerance_px: f64,
-) -> Agreement {
-    let depth = edges.depth(k, pose, grads.width, grads.height);
-    let samples = edges.samples(k, pose, &depth, params.sample_step);
-    count_agreement(grads, &samples, mask, params, tolerance_px)
-}
-
-fn count_agreement(
-    grads: &Gradients,
-    samples: &[EdgeSample],
-    mask: Option<&MaskDistance>,
-    params: &IrlsParams,
-    tolerance_px: f64,
-) -> Agreement {
-    let near = IrlsParams {
-        search_range: tolerance_px,
-        ..*params
-    };
-    let mut a = Agreement {
-        samples: samples.len(),
-        ..Agreement::default()
-    };
-    for s in samples {
-        let margin = params.mask_margin_px;
-        if mask.is_some_and(|m| !m.within(&s.pixel, margin)) {
-            continue;
-        }
-        a.inside += 1;
-        let Some((found, n)) = search(grads, s, &near) else {
-            continue;
-        };
-        if found[..n].iter().any(|&o| {
-            o.abs() <= tolerance_px
-                && mask.is_none_or(|m| m.within(&(s.pixel + s.normal * o), margin))
-        }) {
-            a.matched += 1;
-        }
-    }
-    a
-}
-
 /// The result of a refinement.
 #[derive(Clone, Debug)]
 pub struct PoseResult {
@@ -549,18 +487,34 @@ impl Context<'_> {
     /// the edges leave the pose ambiguous (a crease without contrast, a
     /// small visible part): there the pose near the client's start wins.
     fn score(&self, pose: &Pose) -> f64 {
-        let matched = agreement(
-            &self.grads,
-            self.edges,
-            self.k,
-            pose,
-            self.mask.as_ref(),
-            self.params,
-            AGREE_PX,
-        )
-        .matched;
         let moved = self.displacement(pose, &self.initial);
-        matched as f64 - self.params.prior_weight * moved
+        self.matched(pose) as f64 - self.params.prior_weight * moved
+    }
+
+    /// The visible model edge samples at `pose` that lie in the mask (grown
+    /// by the margin) and have a compatible image edge within [`AGREE_PX`]
+    /// along their normal, also in the mask.
+    fn matched(&self, pose: &Pose) -> usize {
+        let (g, params) = (&self.grads, self.params);
+        let depth = self.edges.depth(self.k, pose, g.width, g.height);
+        let near = IrlsParams {
+            search_range: AGREE_PX,
+            ..*params
+        };
+        let margin = params.mask_margin_px;
+        let in_mask = |p: &Vector2<f64>| self.mask.as_ref().is_none_or(|m| m.within(p, margin));
+        self.edges
+            .samples(self.k, pose, &depth, params.sample_step)
+            .iter()
+            .filter(|s| in_mask(&s.pixel))
+            .filter(|s| {
+                search(g, s, &near).is_some_and(|(found, n)| {
+                    found[..n]
+                        .iter()
+                        .any(|&o| o.abs() <= AGREE_PX && in_mask(&(s.pixel + s.normal * o)))
+                })
+            })
+            .count()
     }
 
     /// One outer iteration of `t`: fresh correspondences, then a few
