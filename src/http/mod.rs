@@ -2,6 +2,7 @@
 //! mapping from errors to statuses, metrics middleware and the router.
 //! Only this layer knows about HTTP.
 
+pub mod body;
 pub mod detect;
 pub mod error;
 pub mod image;
@@ -32,11 +33,18 @@ pub fn router(state: Arc<AppState>) -> Router {
     let body_limit = state.config.max_body_bytes;
     let pose_limit = state.config.max_pose_body_bytes;
     Router::new()
-        .route("/detect", post(detect::detect))
-        // The route's own limit wins over the router's default.
+        // Each body route reads an oversized body to its end before its
+        // 413 (see `body`); the route's own limit wins over the router's
+        // default.
+        .route(
+            "/detect",
+            post(detect::detect).layer(body::drain_past(body_limit)),
+        )
         .route(
             "/pose",
-            post(pose::pose).layer(DefaultBodyLimit::max(pose_limit)),
+            post(pose::pose)
+                .layer::<_, std::convert::Infallible>(DefaultBodyLimit::max(pose_limit))
+                .layer(body::drain_past(pose_limit)),
         )
         .route("/health/live", get(ops::live))
         .route("/health/ready", get(ops::ready))

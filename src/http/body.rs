@@ -1,0 +1,177 @@
+//! Reading the rest of an oversized body before answering 413.
+//!
+//! A server that answers while the client is still sending, and closes,
+//! leaves unread bytes in its socket: the kernel then resets the
+//! connection, and the client sees a broken pipe instead of the 413. So a
+//! request body is wrapped in [`DrainPastLimit`]: once the bytes pass the
+//! route's limit it reads and discards the rest of the body (up to
+//! [`DRAIN_BYTES`] more) before it hands on the frame that passed the
+//! limit, which the extractors' own limit then refuses with the usual 413.
+//! A client sending still more may see the connection reset.
+
+use std::pin::Pin;
+use std::task::{Context, Poll};
+
+use axum::body::{Body, Bytes, HttpBody};
+use axum::extract::Request;
+use http_body::{Frame, SizeHint};
+use tower::util::MapRequestLayer;
+
+/// How many bytes past a route's limit are read and discarded.
+pub const DRAIN_BYTES: usize = 64 << 20;
+
+/// A body that reads to the end (within `drain` more bytes) before it
+/// yields the frame that takes it past `limit`.
+pub struct DrainPastLimit<B> {
+    inner: B,
+    limit: usize,
+    drain: usize,
+    seen: usize,
+    discarded: usize,
+    /// The frame that passed the limit, held back while draining.
+    held: Option<Frame<Bytes>>,
+    /// Draining stopped (the end, the cap or an error).
+    drained: bool,
+}
+
+impl<B> DrainPastLimit<B> {
+    /// Wraps `inner` for a route whose body limit is `limit` bytes,
+    /// discarding at most `drain` bytes past it.
+    pub fn new(inner: B, limit: usize, drain: usize) -> Self {
+        Self {
+            inner,
+            limit,
+            drain,
+            seen: 0,
+            discarded: 0,
+            held: None,
+            drained: false,
+        }
+    }
+}
+
+impl<B> HttpBody for DrainPastLimit<B>
+where
+    B: HttpBody<Data = Bytes> + Unpin,
+{
+    type Data = Bytes;
+    type Error = B::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, B::Error>>> {
+        let this = &mut *self;
+        if this.held.is_none() {
+            let frame = match Pin::new(&mut this.inner).poll_frame(cx) {
+                Poll::Ready(Some(Ok(frame))) => frame,
+                other => return other,
+            };
+            let len = frame.data_ref().map_or(0, Bytes::len);
+            this.seen = this.seen.saturating_add(len);
+            if this.seen <= this.limit || this.drained {
+                return Poll::Ready(Some(Ok(frame)));
+            }
+            this.held = Some(frame);
+        }
+        while !this.drained {
+            match Pin::new(&mut this.inner).poll_frame(cx) {
+                Poll::Pending => return Poll::Pending,
+                Poll::Ready(Some(Ok(frame))) => {
+                    let len = frame.data_ref().map_or(0, Bytes::len);
+                    this.discarded = this.discarded.saturating_add(len);
+                    this.drained = this.discarded > this.drain;
+                }
+                // The end, or a broken body: either way nothing more to read.
+                Poll::Ready(_) => this.drained = true,
+            }
+        }
+        Poll::Ready(this.held.take().map(Ok))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.held.is_none() && self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
+    }
+}
+
+/// A layer that wraps each request's body in [`DrainPastLimit`].
+pub fn drain_past(limit: usize) -> MapRequestLayer<impl Fn(Request) -> Request + Clone> {
+    MapRequestLayer::new(move |req: Request| {
+        req.map(|body| Body::new(DrainPastLimit::new(body, limit, DRAIN_BYTES)))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use http_body_util::{BodyExt, Limited};
+    use std::convert::Infallible;
+
+    /// A body of `chunks` frames of `size` bytes that counts what was read.
+    struct Chunked {
+        chunks: usize,
+        size: usize,
+        read: usize,
+    }
+
+    impl HttpBody for Chunked {
+        type Data = Bytes;
+        type Error = Infallible;
+
+        fn poll_frame(
+            mut self: Pin<&mut Self>,
+            _: &mut Context<'_>,
+        ) -> Poll<Option<Result<Frame<Bytes>, Infallible>>> {
+            if self.chunks == 0 {
+                return Poll::Ready(None);
+            }
+            self.chunks -= 1;
+            self.read += self.size;
+            Poll::Ready(Some(Ok(Frame::data(Bytes::from(vec![7u8; self.size])))))
+        }
+    }
+
+    fn chunked(chunks: usize, size: usize) -> Chunked {
+        Chunked {
+            chunks,
+            size,
+            read: 0,
+        }
+    }
+
+    /// Whether a body within `limit` is accepted, and how much was read,
+    /// draining at most 1000 bytes past the limit.
+    async fn read_limited(chunks: usize, size: usize, limit: usize) -> (bool, usize) {
+        let mut body = DrainPastLimit::new(chunked(chunks, size), limit, 1000);
+        let ok = Limited::new(&mut body, limit).collect().await.is_ok();
+        (ok, body.inner.read)
+    }
+
+    #[tokio::test]
+    async fn a_body_within_the_limit_passes_whole() {
+        let body = DrainPastLimit::new(chunked(10, 100), 1000, 0);
+        let bytes = body.collect().await.unwrap().to_bytes();
+        assert_eq!(bytes.len(), 1000);
+        assert!(bytes.iter().all(|&b| b == 7));
+    }
+
+    #[tokio::test]
+    async fn an_oversized_body_is_read_to_its_end_and_then_refused() {
+        // 1500 bytes against a limit of 1000: all of it is read, and the
+        // limit still refuses it.
+        assert_eq!(read_limited(15, 100, 1000).await, (false, 1500));
+        assert_eq!(read_limited(21, 100, 1000).await, (false, 2100));
+    }
+
+    #[tokio::test]
+    async fn draining_stops_past_its_bound() {
+        // 10 000 bytes against a limit of 1000: reading stops once more
+        // than the 1000 bytes allowed past the frame that crossed the
+        // limit were discarded.
+        assert_eq!(read_limited(100, 100, 1000).await, (false, 2200));
+    }
+}
