@@ -15,6 +15,7 @@ use std::task::{Context, Poll};
 use axum::body::{Body, Bytes, HttpBody};
 use axum::extract::Request;
 use http_body::{Frame, SizeHint};
+use http_body_util::{BodyExt, Limited};
 use tower::util::MapRequestLayer;
 
 /// How many bytes past a route's limit are read and discarded.
@@ -105,10 +106,17 @@ pub fn drain_past(limit: usize) -> MapRequestLayer<impl Fn(Request) -> Request +
     })
 }
 
+/// Reads and discards a request's body (within `limit`, and the drain
+/// past it), for an answer given without its content: the client then
+/// reads the answer rather than a reset connection.
+pub async fn discard(req: Request, limit: usize) {
+    let mut body = Limited::new(req.into_body(), limit);
+    while let Some(Ok(_)) = body.frame().await {}
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use http_body_util::{BodyExt, Limited};
     use std::convert::Infallible;
 
     /// A body of `chunks` frames of `size` bytes that counts what was read.

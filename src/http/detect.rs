@@ -176,29 +176,35 @@ async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
             let mut mp = Multipart::from_request(req, &())
                 .await
                 .map_err(|e| ApiError::BadRequest(e.body_text()))?;
-            loop {
-                let field = mp
-                    .next_field()
+            // Every part is read, so that the answer never leaves body
+            // unread (which resets the connection); the first `image` wins.
+            let mut image = None;
+            while let Some(field) = mp
+                .next_field()
+                .await
+                .map_err(|e| multipart_error(&e, limit))?
+            {
+                let is_image = field.name() == Some("image");
+                let bytes = field
+                    .bytes()
                     .await
                     .map_err(|e| multipart_error(&e, limit))?;
-                let Some(field) = field else {
-                    return Err(ApiError::BadRequest(
-                        "the multipart body has no `image` part".into(),
-                    ));
-                };
-                if field.name() == Some("image") {
-                    let bytes = field
-                        .bytes()
-                        .await
-                        .map_err(|e| multipart_error(&e, limit))?;
-                    return Ok(bytes.to_vec());
+                if is_image && image.is_none() {
+                    image = Some(bytes.to_vec());
                 }
             }
+            image.ok_or_else(|| {
+                ApiError::BadRequest("the multipart body has no `image` part".into())
+            })
         }
-        other => Err(ApiError::UnsupportedMediaType(format!(
-            "send the image as image/jpeg, image/png or multipart/form-data, not {}",
-            other.unwrap_or("a body without Content-Type")
-        ))),
+        other => {
+            let e = ApiError::UnsupportedMediaType(format!(
+                "send the image as image/jpeg, image/png or multipart/form-data, not {}",
+                other.unwrap_or("a body without Content-Type")
+            ));
+            super::body::discard(req, limit).await;
+            Err(e)
+        }
     }
 }
 
@@ -231,9 +237,16 @@ pub async fn detect(
 ) -> Result<Response, ApiError> {
     let arrived = Instant::now();
     let cfg = state.config;
-    // Admission before reading or decoding anything: an overload costs no
-    // work and no memory beyond the queue's.
-    let permit = state.infer.admit()?;
+    // Admission before decoding or keeping anything: an overload costs no
+    // work and no memory beyond the queue's (its body is only read, so that
+    // the client reads the 503 rather than a reset connection).
+    let permit = match state.infer.admit() {
+        Ok(permit) => permit,
+        Err(e) => {
+            super::body::discard(req, cfg.max_body_bytes).await;
+            return Err(e.into());
+        }
+    };
     let wants_png = accepts_png(req.headers());
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
     // The query after the body (as for /pose), so that a client sending a

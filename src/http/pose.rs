@@ -56,9 +56,7 @@ async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
                 "send multipart/form-data with the parts image, mesh, params and optionally mask, not {}",
                 other.unwrap_or("a body without Content-Type")
             ));
-            // Read what was sent (within the limit) so that the client
-            // sees this answer rather than a reset connection.
-            let _ = axum::body::to_bytes(req.into_body(), limit).await;
+            super::body::discard(req, limit).await;
             return Err(e);
         }
     }
@@ -124,7 +122,13 @@ pub async fn pose(
     let arrived = Instant::now();
     let cfg = state.config;
     // Admission before reading anything, as for /detect.
-    let permit = state.infer.admit()?;
+    let permit = match state.infer.admit() {
+        Ok(permit) => permit,
+        Err(e) => {
+            super::body::discard(req, cfg.max_pose_body_bytes).await;
+            return Err(e.into());
+        }
+    };
     let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
     // The query after the body, so that a client sending a large body
     // with a bad query reads the 400 rather than a reset connection.
