@@ -753,7 +753,13 @@ fn run_pose_bench(args: &PoseBenchArgs) -> Result<(), Failure> {
                 let bg = &backgrounds[i % backgrounds.len()];
                 let s = scene(object, bg, occlusion, &settings, seed).map_err(Failure::input)?;
                 hidden += s.scene.occluded_fraction / args.scenes as f64;
-                outcomes.extend(evaluate(&edges, &s, detector, &settings));
+                outcomes.extend(evaluate(
+                    &edges,
+                    &s,
+                    detector,
+                    &settings,
+                    &sdhop::pose::IrlsParams::default(),
+                ));
             }
             let mut summaries = Vec::new();
             for method in [Method::Irls, Method::OrIrlsExact, Method::OrIrlsSdhop] {

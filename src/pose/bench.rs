@@ -257,8 +257,8 @@ pub fn evaluate(
     bench: &BenchScene,
     detector: Option<&Model>,
     settings: &BenchSettings,
+    params: &IrlsParams,
 ) -> Vec<Outcome> {
-    let params = IrlsParams::default();
     let img = &bench.scene.image;
     let truth = &bench.scene.pose;
     let mut out = Vec::new();
@@ -267,7 +267,7 @@ pub fn evaluate(
         let result = if missed {
             None
         } else {
-            refine(img, edges, &CAMERA, &bench.start, mask, &params).ok()
+            refine(img, edges, &CAMERA, &bench.start, mask, params).ok()
         };
         let refine_ms = t.elapsed().as_secs_f64() * 1e3;
         let failed = result.is_none();

@@ -63,6 +63,13 @@ pub struct IrlsParams {
     /// Matched edge samples that a pixel of image motion from the initial
     /// pose costs when the restarts are ranked (see [`refine`]).
     pub prior_weight: f64,
+    /// Weight, against an edge sample's (at most 1), of each coordinate
+    /// of each of the object's box corners held at its image position at
+    /// the initial pose in the Gauss-Newton steps: a weak prior that keeps
+    /// directions the edges do not fix (the spin of a rounded object, a
+    /// half-hidden one) near the client's pose instead of drifting (0:
+    /// none).
+    pub anchor_weight: f64,
 }
 
 impl Default for IrlsParams {
@@ -83,6 +90,7 @@ impl Default for IrlsParams {
             restart_rings: 1,
             restart_depth: 0.02,
             prior_weight: 4.0,
+            anchor_weight: 0.003,
         }
     }
 }
@@ -108,7 +116,9 @@ impl IrlsParams {
             && self.restart_rings <= 4
             && (0.0..0.5).contains(&self.restart_depth)
             && self.prior_weight.is_finite()
-            && self.prior_weight >= 0.0;
+            && self.prior_weight >= 0.0
+            && self.anchor_weight.is_finite()
+            && self.anchor_weight >= 0.0;
         if ok {
             Ok(())
         } else {
@@ -426,6 +436,8 @@ struct Context<'a> {
     params: &'a IrlsParams,
     radius: f64,
     initial: Pose,
+    /// The box corners' image positions at the initial pose.
+    anchors: [Option<Vector2<f64>>; 8],
 }
 
 /// One refinement from one start pose.
@@ -603,6 +615,19 @@ impl Context<'_> {
             if inliers < 6 {
                 return Err(PoseError::NotEnoughEdges(inliers));
             }
+            let anchor = params.anchor_weight;
+            if anchor > 0.0 {
+                let corners = self.edges.box_corners();
+                for (c, at) in corners.iter().zip(&self.anchors) {
+                    let Some(at) = at else { continue };
+                    for n in [Vector2::x(), Vector2::y()] {
+                        if let Some((r, j)) = residual_and_jacobian(k, &t.pose, c, &n, at) {
+                            h += j * j.transpose() * anchor;
+                            g += j * (anchor * r);
+                        }
+                    }
+                }
+            }
             // Levenberg-Marquardt damping keeps weakly constrained
             // directions (e.g. rotation about a cylinder's axis) still.
             let mut damped = h;
@@ -704,6 +729,9 @@ pub fn refine(
         params,
         radius: edges.radius(),
         initial: *initial,
+        anchors: edges
+            .box_corners()
+            .map(|c| k.project(&initial.transform(&c))),
     };
     let new_track = |pose: Pose| Track {
         pose,
