@@ -95,7 +95,13 @@ where
     }
 
     fn size_hint(&self) -> SizeHint {
-        self.inner.size_hint()
+        // Past the limit some bytes are discarded: the inner hint no longer
+        // holds.
+        if self.seen > self.limit {
+            SizeHint::default()
+        } else {
+            self.inner.size_hint()
+        }
     }
 }
 
@@ -141,6 +147,10 @@ mod tests {
             self.read += self.size;
             Poll::Ready(Some(Ok(Frame::data(Bytes::from(vec![7u8; self.size])))))
         }
+
+        fn size_hint(&self) -> SizeHint {
+            SizeHint::with_exact((self.chunks * self.size) as u64)
+        }
     }
 
     fn chunked(chunks: usize, size: usize) -> Chunked {
@@ -155,7 +165,12 @@ mod tests {
     /// draining at most 1000 bytes past the limit.
     async fn read_limited(chunks: usize, size: usize, limit: usize) -> (bool, usize) {
         let mut body = DrainPastLimit::new(chunked(chunks, size), limit, 1000);
+        assert_eq!(body.size_hint().exact(), Some((chunks * size) as u64));
         let ok = Limited::new(&mut body, limit).collect().await.is_ok();
+        if !ok {
+            // Bytes were discarded: the inner length no longer holds.
+            assert_eq!(body.size_hint().exact(), None);
+        }
         (ok, body.inner.read)
     }
 
