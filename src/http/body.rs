@@ -18,6 +18,10 @@ use http_body::{Frame, SizeHint};
 use http_body_util::{BodyExt, Limited};
 use tower::util::MapRequestLayer;
 
+use super::error::ApiError;
+use super::state::AppState;
+use crate::infer::Permit;
+
 /// How many bytes past a route's limit are read and discarded.
 pub const DRAIN_BYTES: usize = 64 << 20;
 
@@ -118,6 +122,22 @@ pub fn drain_past(limit: usize) -> MapRequestLayer<impl Fn(Request) -> Request +
 pub async fn discard(req: Request, limit: usize) {
     let mut body = Limited::new(req.into_body(), limit);
     while let Some(Ok(_)) = body.frame().await {}
+}
+
+/// A place in the queue for `req`; when the queue refuses, the body is
+/// read first (see [`discard`]) and the refusal returned.
+pub async fn admit(
+    state: &AppState,
+    req: Request,
+    limit: usize,
+) -> Result<(Permit, Request), ApiError> {
+    match state.infer.admit() {
+        Ok(permit) => Ok((permit, req)),
+        Err(e) => {
+            discard(req, limit).await;
+            Err(e.into())
+        }
+    }
 }
 
 #[cfg(test)]

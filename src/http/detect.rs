@@ -240,13 +240,7 @@ pub async fn detect(
     // Admission before decoding or keeping anything: an overload costs no
     // work and no memory beyond the queue's (its body is only read, so that
     // the client reads the 503 rather than a reset connection).
-    let permit = match state.infer.admit() {
-        Ok(permit) => permit,
-        Err(e) => {
-            super::body::discard(req, cfg.max_body_bytes).await;
-            return Err(e.into());
-        }
-    };
+    let (permit, req) = super::body::admit(&state, req, cfg.max_body_bytes).await?;
     let wants_png = accepts_png(req.headers());
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
     // The query after the body (as for /pose), so that a client sending a

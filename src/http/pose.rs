@@ -121,14 +121,8 @@ pub async fn pose(
 ) -> Result<Response, ApiError> {
     let arrived = Instant::now();
     let cfg = state.config;
-    // Admission before reading anything, as for /detect.
-    let permit = match state.infer.admit() {
-        Ok(permit) => permit,
-        Err(e) => {
-            super::body::discard(req, cfg.max_pose_body_bytes).await;
-            return Err(e.into());
-        }
-    };
+    // Admission before keeping anything, as for /detect.
+    let (permit, req) = super::body::admit(&state, req, cfg.max_pose_body_bytes).await?;
     let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
     // The query after the body, so that a client sending a large body
     // with a bad query reads the 400 rather than a reset connection.

@@ -239,6 +239,18 @@ fn edge_strength(g: &Gradients, s: &EdgeSample, p: &IrlsParams, cos_max: f64, t:
     }
 }
 
+/// The sub-pixel offset (within half a pixel) of a peak of strength `v0`
+/// between neighbours `vm` and `vp`: the vertex of the parabola through
+/// the three (none where they do not curve down).
+fn subpixel(vm: f64, v0: f64, vp: f64) -> f64 {
+    let denom = vm - 2.0 * v0 + vp;
+    if denom < -1e-12 {
+        (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
+}
+
 /// Searches along the sample's normal for the strongest compatible edges
 /// (local maxima of the gradient along the normal, up to [`HYPOTHESES`]),
 /// each with a parabolic sub-pixel refinement; ties go to the nearer one.
@@ -291,14 +303,7 @@ fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTH
     let mut out = [0.0; HYPOTHESES];
     let count = peaks.len();
     for (o, &(v0, t)) in out.iter_mut().zip(peaks) {
-        let (vm, vp) = (at(t - 1), at(t + 1));
-        let denom = vm - 2.0 * v0 + vp;
-        let sub = if denom < -1e-12 {
-            (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
-        } else {
-            0.0
-        };
-        *o = t as f64 + sub;
+        *o = t as f64 + subpixel(at(t - 1), v0, at(t + 1));
     }
     Some((out, count))
 }
@@ -841,16 +846,7 @@ mod tests {
             .iter()
             .filter(|p| p.0 >= floor)
             .take(HYPOTHESES)
-            .map(|&(v0, t)| {
-                let (vm, vp) = (strength(t - 1), strength(t + 1));
-                let denom = vm - 2.0 * v0 + vp;
-                let sub = if denom < -1e-12 {
-                    (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
-                } else {
-                    0.0
-                };
-                t as f64 + sub
-            })
+            .map(|&(v0, t)| t as f64 + subpixel(strength(t - 1), v0, strength(t + 1)))
             .collect()
     }
 
