@@ -310,11 +310,26 @@ pub struct Summary {
     pub mean_errors: [f64; 6],
     pub mean_angle_degrees: f64,
     pub mean_distance_mm: f64,
+    /// Standard errors of the two means (sample standard deviation over
+    /// the square root of the scene count; 0 for a single scene).
+    pub se_angle_degrees: f64,
+    pub se_distance_mm: f64,
     pub median_angle_degrees: f64,
     pub median_distance_mm: f64,
     pub success_rate: f64,
     pub failed: usize,
     pub mean_total_ms: f64,
+}
+
+/// Mean and standard error of the mean of `v` (not empty).
+fn mean_and_se(v: &[f64]) -> (f64, f64) {
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    if v.len() < 2 {
+        return (mean, 0.0);
+    }
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (mean, (var / n).sqrt())
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -343,14 +358,20 @@ pub fn summarize(outcomes: &[Outcome], method: Method) -> Option<Summary> {
             *m += e / n;
         }
     }
+    let angles: Vec<f64> = o.iter().map(|x| x.angle_degrees).collect();
+    let distances: Vec<f64> = o.iter().map(|x| x.distance_mm).collect();
+    let (mean_angle_degrees, se_angle_degrees) = mean_and_se(&angles);
+    let (mean_distance_mm, se_distance_mm) = mean_and_se(&distances);
     Some(Summary {
         method,
         scenes: o.len(),
         mean_errors: mean,
-        mean_angle_degrees: o.iter().map(|x| x.angle_degrees).sum::<f64>() / n,
-        mean_distance_mm: o.iter().map(|x| x.distance_mm).sum::<f64>() / n,
-        median_angle_degrees: median(o.iter().map(|x| x.angle_degrees).collect()),
-        median_distance_mm: median(o.iter().map(|x| x.distance_mm).collect()),
+        mean_angle_degrees,
+        mean_distance_mm,
+        se_angle_degrees,
+        se_distance_mm,
+        median_angle_degrees: median(angles),
+        median_distance_mm: median(distances),
         success_rate: o.iter().filter(|x| x.success).count() as f64 / n,
         failed: o.iter().filter(|x| x.failed).count(),
         mean_total_ms: o.iter().map(|x| x.detect_ms + x.refine_ms).sum::<f64>() / n,
@@ -378,6 +399,39 @@ mod tests {
         for (a, b) in e.iter().zip([1.0, 2.0, 3.0, 0.0, 0.0, 2.0]) {
             assert!((a - b).abs() < 1e-9, "{e:?}");
         }
+    }
+
+    #[test]
+    fn summaries_give_means_standard_errors_and_medians_per_method() {
+        let outcome = |method, angle_degrees: f64, distance_mm: f64| Outcome {
+            method,
+            errors: [distance_mm, 0.0, 0.0, angle_degrees, 0.0, 0.0],
+            angle_degrees,
+            distance_mm,
+            success: angle_degrees <= 2.0,
+            failed: false,
+            detect_ms: 0.0,
+            refine_ms: 1.0,
+        };
+        let outcomes = [
+            outcome(Method::Irls, 1.0, 2.0),
+            outcome(Method::OrIrlsExact, 100.0, 100.0),
+            outcome(Method::Irls, 3.0, 4.0),
+            outcome(Method::Irls, 8.0, 6.0),
+        ];
+        let s = summarize(&outcomes, Method::Irls).unwrap();
+        assert_eq!(s.scenes, 3);
+        assert!((s.mean_angle_degrees - 4.0).abs() < 1e-12);
+        // Deviations -3, -1, 4: variance 26 / 2 = 13, se sqrt(13 / 3).
+        assert!((s.se_angle_degrees - (13.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        // Deviations -2, 0, 2: variance 4, se sqrt(4 / 3).
+        assert!((s.se_distance_mm - (4.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert_eq!((s.median_angle_degrees, s.median_distance_mm), (3.0, 4.0));
+        assert!((s.success_rate - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(s.mean_errors[0], 4.0);
+        let one = summarize(&outcomes, Method::OrIrlsExact).unwrap();
+        assert_eq!((one.se_angle_degrees, one.se_distance_mm), (0.0, 0.0));
+        assert!(summarize(&outcomes, Method::OrIrlsSdhop).is_none());
     }
 
     #[test]
