@@ -399,7 +399,7 @@ struct PoseDataArgs {
     bg: PoseBackgrounds,
     /// Training renders per object (a third unoccluded, the rest 10-60%
     /// hidden).
-    #[arg(long, default_value_t = 120)]
+    #[arg(long, default_value_t = 360)]
     scenes: usize,
     /// Folder for `coco.json` and `images/`.
     #[arg(long, default_value = "out/pose-data")]
@@ -411,7 +411,7 @@ struct PoseBenchArgs {
     #[command(flatten)]
     bg: PoseBackgrounds,
     /// Scenes per object and condition (unoccluded; 20-60% hidden).
-    #[arg(long, default_value_t = 40)]
+    #[arg(long, default_value_t = 100)]
     scenes: usize,
     /// Detector models of the objects (trained on `pose-data`); without
     /// them the SD-HOP mask is left out.
@@ -736,7 +736,7 @@ fn run_pose_bench(args: &PoseBenchArgs) -> Result<(), Failure> {
         .collect::<Result<_, _>>()?;
     let mut report = Vec::new();
     println!(
-        "| object | hidden | method | X mm | Y mm | Z mm | roll ° | pitch ° | yaw ° | angle ° mean / median | distance mm mean / median | success | failed | ms |"
+        "| object | hidden | method | X mm | Y mm | Z mm | roll ° | pitch ° | yaw ° | angle ° mean ± se / median | distance mm mean ± se / median | success | failed | ms |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (ci, object) in objects.iter().enumerate() {
@@ -768,14 +768,16 @@ fn run_pose_bench(args: &PoseBenchArgs) -> Result<(), Failure> {
                 };
                 let e = s.mean_errors;
                 println!(
-                    "| {} | {label} (mean {:.0}%) | {:?} | {:.1} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} / {:.2} | {:.1} / {:.1} | {:.0}% | {} | {:.0} |",
+                    "| {} | {label} (mean {:.0}%) | {:?} | {:.1} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} ± {:.2} / {:.2} | {:.1} ± {:.1} / {:.1} | {:.0}% | {} | {:.0} |",
                     object.name,
                     100.0 * hidden,
                     method,
                     e[0], e[1], e[2], e[3], e[4], e[5],
                     s.mean_angle_degrees,
+                    s.se_angle_degrees,
                     s.median_angle_degrees,
                     s.mean_distance_mm,
+                    s.se_distance_mm,
                     s.median_distance_mm,
                     100.0 * s.success_rate,
                     s.failed,
