@@ -186,16 +186,19 @@ impl Gradients {
 
     /// The gradient at the pixel containing `p`, if inside the image.
     fn at(&self, p: &Vector2<f64>) -> Option<Vector2<f64>> {
-        if p.x < 0.0 || p.y < 0.0 {
-            return None;
-        }
-        let (x, y) = (p.x as usize, p.y as usize);
-        if x >= self.width || y >= self.height {
-            return None;
-        }
-        let i = y * self.width + x;
+        let i = pixel_index(p, self.width, self.height)?;
         Some(Vector2::new(f64::from(self.gx[i]), f64::from(self.gy[i])))
     }
+}
+
+/// The row-major index of the pixel containing `p` in a `width` x
+/// `height` grid, if inside it.
+fn pixel_index(p: &Vector2<f64>, width: usize, height: usize) -> Option<usize> {
+    if p.x < 0.0 || p.y < 0.0 {
+        return None;
+    }
+    let (x, y) = (p.x as usize, p.y as usize);
+    (x < width && y < height).then(|| y * width + x)
 }
 
 /// Tolerance (pixels) of the agreement that ranks the restarts.
@@ -380,11 +383,7 @@ impl MaskDistance {
 
     /// Whether the pixel containing `p` lies in the mask grown by `r`.
     pub fn within(&self, p: &Vector2<f64>, r: usize) -> bool {
-        if p.x < 0.0 || p.y < 0.0 {
-            return false;
-        }
-        let (x, y) = (p.x as usize, p.y as usize);
-        x < self.width && y < self.height && usize::from(self.dist[y * self.width + x]) <= r
+        pixel_index(p, self.width, self.height).is_some_and(|i| usize::from(self.dist[i]) <= r)
     }
 }
 
