@@ -284,7 +284,8 @@ fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTH
             continue;
         }
         let better = |q: &(f64, i64)| v > q.0 || (v == q.0 && t.abs() < q.1.abs());
-        let Some(pos) = (0..found.min(HYPOTHESES))
+        // `found` never exceeds HYPOTHESES.
+        let Some(pos) = (0..found)
             .find(|&i| better(&peaks[i]))
             .or((found < HYPOTHESES).then_some(found))
         else {
