@@ -4,6 +4,7 @@ use std::time::Instant;
 use nalgebra::{Rotation3, Vector3};
 use sdhop::pose::render::{background, perturb, render};
 use sdhop::pose::{refine, EdgeModel, Intrinsics, IrlsParams, Mesh, Pose};
+use sdhop::vision::Deadline;
 
 fn main() {
     let segments: usize = std::env::args()
@@ -40,10 +41,14 @@ fn main() {
     println!("edge model {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
     let start = perturb(&truth, 0.01, 5.0, 8);
     let t = Instant::now();
-    let depth = edges.depth(&k, &start, 640, 480);
+    let depth = edges
+        .depth(&k, &start, 640, 480, &Deadline::NONE)
+        .expect("depth");
     println!("depth {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
     let t = Instant::now();
-    let s = edges.samples(&k, &start, &depth, 3.0);
+    let s = edges
+        .samples(&k, &start, &depth, 3.0, &Deadline::NONE)
+        .expect("samples");
     println!(
         "{} samples {:.0} ms",
         s.len(),

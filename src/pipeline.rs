@@ -12,7 +12,7 @@ use crate::vision::image::ColorImage;
 use crate::vision::mask::{Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
-use crate::vision::VisionError;
+use crate::vision::{Deadline, VisionError};
 
 /// Default upper limit on the pixels of an input image.
 pub const DEFAULT_MAX_PIXELS: usize = 40_000_000;
@@ -39,6 +39,8 @@ pub struct DetectOptions {
     pub max_pixels: usize,
     /// Only detections about here (see [`Region`]).
     pub region: Option<Region>,
+    /// Give up once this passes.
+    pub deadline: Deadline,
 }
 
 impl Default for DetectOptions {
@@ -50,6 +52,7 @@ impl Default for DetectOptions {
             prune: true,
             max_pixels: DEFAULT_MAX_PIXELS,
             region: None,
+            deadline: Deadline::NONE,
         }
     }
 }
@@ -250,6 +253,7 @@ fn run_model(
     }
     params.prune = opts.prune;
     params.region = opts.region;
+    params.deadline = opts.deadline;
     let detector = Detector::new(&model.views)?;
     let (dets, s) = detector.detect_with_bounds(pyr, &params, pre)?;
     stats.locations += s.locations;
@@ -258,6 +262,9 @@ fn run_model(
     timing.mincut += s.mincut_ms;
     let t = Instant::now();
     for d in dets {
+        if opts.deadline.passed() {
+            return Err(VisionError::DeadlineExceeded);
+        }
         let (raw, refined) = if opts.masks == MaskMode::None {
             (None, None)
         } else {

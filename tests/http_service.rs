@@ -5,9 +5,9 @@
 //! equals the CLI's. Models and images are generated (synthetic scenes).
 
 use std::collections::BTreeSet;
-use std::io::{BufRead, BufReader, Cursor};
-use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::io::Cursor;
+use std::path::Path;
+use std::process::Command;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -15,110 +15,14 @@ use prometheus::Registry;
 use reqwest::header::{ACCEPT, CONTENT_TYPE, RETRY_AFTER};
 use reqwest::StatusCode;
 use sdhop::backend::CpuBackend;
-use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
+use sdhop::http::{load_models, warm_up, AppState, HttpConfig};
 use sdhop::infer::{Infer, InferConfig, InferMetrics};
 use sdhop::pose::render::{background, perturb, render};
 use sdhop::pose::{Intrinsics, Mesh, Pose};
-use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use serde_json::Value;
 
-const OBJECT: SynthObject = SynthObject {
-    cols: 12,
-    rows: 10,
-    seed: 11,
-};
-
-/// A folder holding the synthetic model, made once per test process.
-fn models_dir() -> PathBuf {
-    static DIR: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("sdhop-http-test-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
-        model.save(&dir.join("synthetic.safetensors")).unwrap();
-        dir
-    })
-    .clone()
-}
-
-fn synthetic_scene(seed: u64, width: usize, height: usize) -> Scene {
-    scene(
-        &OBJECT,
-        &SceneParams {
-            seed,
-            width,
-            height,
-            ..SceneParams::default()
-        },
-    )
-    .unwrap()
-}
-
-fn encode(scene: &Scene, format: image::ImageFormat) -> Vec<u8> {
-    let mut out = Vec::new();
-    scene
-        .image
-        .to_rgb8()
-        .write_to(&mut Cursor::new(&mut out), format)
-        .unwrap();
-    out
-}
-
-/// A running in-process server.
-struct Server {
-    base: String,
-    stop: Option<tokio::sync::oneshot::Sender<()>>,
-    done: Option<tokio::task::JoinHandle<std::io::Result<bool>>>,
-}
-
-impl Server {
-    async fn start(queue: InferConfig, http: HttpConfig) -> Self {
-        let registry = Registry::new();
-        let metrics = InferMetrics::new(&registry).unwrap();
-        let infer = Infer::start(Box::new(CpuBackend), queue, metrics).unwrap();
-        let models = load_models(&models_dir()).unwrap();
-        let state = AppState::new(infer, models, http, registry).unwrap();
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let base = format!("http://{}", listener.local_addr().unwrap());
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let s = Arc::clone(&state);
-        let done = tokio::spawn(async move {
-            serve(
-                listener,
-                s,
-                async {
-                    let _ = rx.await;
-                },
-                Duration::from_secs(30),
-            )
-            .await
-        });
-        warm_up(&state).await.unwrap();
-        Server {
-            base,
-            stop: Some(tx),
-            done: Some(done),
-        }
-    }
-
-    async fn default() -> Self {
-        Self::start(InferConfig::default(), HttpConfig::default()).await
-    }
-
-    fn url(&self, path: &str) -> String {
-        format!("{}{path}", self.base)
-    }
-
-    async fn stop(mut self) -> bool {
-        if let Some(tx) = self.stop.take() {
-            let _ = tx.send(());
-        }
-        match self.done.take() {
-            Some(d) => d.await.unwrap().unwrap(),
-            None => true,
-        }
-    }
-}
+mod common;
+use common::*;
 
 /// The API contract as JSON.
 fn spec() -> Value {
@@ -557,6 +461,69 @@ fn crc32(data: &[u8]) -> u32 {
     !c
 }
 
+/// Sends `request` over a raw connection (which then stalls), reads the
+/// answer to its end, checks it against the spec as `call` does and
+/// expects `status`.
+async fn raw_call(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    path: &'static str,
+    addr: &str,
+    request: String,
+    status: u16,
+) {
+    use std::io::{Read, Write};
+    let addr = addr.to_string();
+    let answer = tokio::task::spawn_blocking(move || {
+        let mut s = std::net::TcpStream::connect(addr).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let _ = s.write_all(request.as_bytes());
+        let mut out = Vec::new();
+        let _ = s.read_to_end(&mut out);
+        String::from_utf8(out).unwrap()
+    })
+    .await
+    .unwrap();
+    let (head, body) = answer.split_once("\r\n\r\n").unwrap_or((&answer, ""));
+    let line = head.lines().next().unwrap_or_default();
+    assert!(
+        line.starts_with(&format!("HTTP/1.1 {status} ")),
+        "{path}: expected {status}, got {answer:?}"
+    );
+    let header = |name: &str| {
+        head.lines()
+            .find_map(|l| {
+                let (k, v) = l.split_once(':')?;
+                k.eq_ignore_ascii_case(name).then(|| v.trim().to_string())
+            })
+            .unwrap_or_default()
+    };
+    check_schema(
+        spec,
+        path,
+        "post",
+        status,
+        &header("content-type"),
+        body.as_bytes(),
+    );
+    assert_eq!(
+        header("connection"),
+        "close",
+        "{status} without Connection: close"
+    );
+    if status == 429 || status == 503 {
+        assert!(
+            !header("retry-after").is_empty(),
+            "{status} without Retry-After"
+        );
+    }
+    seen.push(Seen {
+        path,
+        method: "post",
+        status,
+    });
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_documented_status_is_produced_and_matches_its_schema() {
     let spec = spec();
@@ -571,6 +538,7 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         HttpConfig {
             max_body_bytes: 4 << 20,
             max_pose_body_bytes: 4 << 20,
+            body_grace: Duration::from_millis(300),
             ..HttpConfig::default()
         },
     )
@@ -829,6 +797,26 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         }
     }
 
+    // 408: uploads that stall past the body grace; 429: a connection over
+    // the per-client limit (the others held idle).
+    let addr = server.base.trim_start_matches("http://").to_string();
+    for (path, ctype) in [
+        ("/detect", "image/jpeg"),
+        ("/pose", "multipart/form-data; boundary=xyz"),
+    ] {
+        let head = format!(
+            "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: 100000\r\n\r\n--"
+        );
+        raw_call(&spec, &mut seen, path, &addr, head.clone(), 408).await;
+        let idle: Vec<std::net::TcpStream> = (0..HttpConfig::default().connections.max_per_client)
+            .map(|_| std::net::TcpStream::connect(&addr).unwrap())
+            .collect();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        raw_call(&spec, &mut seen, path, &addr, head, 429).await;
+        drop(idle);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+
     // Not ready while shutting down: readiness 503, and /detect refuses.
     let client = c.clone();
     let ready_url = server.url("/health/ready");
@@ -1085,46 +1073,6 @@ async fn png_answer_is_a_label_map_of_the_detections() {
         assert_eq!(*px == 1, *on != 0);
     }
     assert!(server.stop().await);
-}
-
-/// Starts the real binary on port 0; returns the child and its address.
-fn spawn_binary(extra: &[&str]) -> (std::process::Child, String) {
-    spawn_binary_env(extra, &[])
-}
-
-/// [`spawn_binary`] with extra environment variables.
-fn spawn_binary_env(extra: &[&str], envs: &[(&str, &str)]) -> (std::process::Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_sdhop-serve"))
-        .args(["--addr", "127.0.0.1:0", "--models-dir"])
-        .arg(models_dir())
-        .args(extra)
-        .envs(envs.iter().copied())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap()
-        .to_string();
-    (child, format!("http://{addr}"))
-}
-
-async fn wait_ready(base: &str) {
-    for _ in 0..600 {
-        if let Ok(r) = reqwest::get(format!("{base}/health/ready")).await {
-            if r.status() == StatusCode::OK {
-                return;
-            }
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    panic!("the server never became ready");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -11,6 +11,7 @@ use std::time::Duration;
 use clap::{Parser, ValueEnum};
 use prometheus::Registry;
 use sdhop::backend::{select, BackendChoice, GpuOptions};
+use sdhop::http::conn::ConnLimits;
 use sdhop::http::image::ImageLimits;
 use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
 use sdhop::infer::{Infer, InferConfig, InferMetrics};
@@ -74,6 +75,21 @@ struct Args {
     #[arg(long, env = "SDHOP_COMPUTE_THREADS", default_value_t = 0)]
     compute_threads: usize,
     /// Seconds to finish requests in flight after SIGTERM.
+    /// A request body must arrive at least this fast, in bytes per second
+    /// on average once --body-grace-ms has passed (0: only the deadline);
+    /// a slower or stalled upload is answered 408 and closed.
+    #[arg(long, env = "SDHOP_MIN_BODY_RATE", default_value_t = 16 << 10)]
+    min_body_rate: u64,
+    /// How long a request body may take before --min-body-rate applies.
+    #[arg(long, env = "SDHOP_BODY_GRACE_MS", default_value_t = 5000)]
+    body_grace_ms: u64,
+    /// Open connections at most; more are answered 503 and closed.
+    #[arg(long, env = "SDHOP_MAX_CONNECTIONS", default_value_t = 512)]
+    max_connections: usize,
+    /// Open connections from one client address at most; more are
+    /// answered 429 and closed.
+    #[arg(long, env = "SDHOP_MAX_CONNECTIONS_PER_CLIENT", default_value_t = 128)]
+    max_connections_per_client: usize,
     #[arg(long, env = "SDHOP_GRACE_SECONDS", default_value_t = 30)]
     grace_seconds: u64,
     /// Log format.
@@ -192,6 +208,12 @@ fn run(args: Args) -> Result<(), String> {
         default_timeout: Duration::from_millis(args.timeout_ms),
         max_timeout: Duration::from_millis(args.max_timeout_ms.max(args.timeout_ms)),
         max_detections: args.max_detections,
+        min_body_rate: args.min_body_rate,
+        body_grace: Duration::from_millis(args.body_grace_ms),
+        connections: ConnLimits {
+            max_total: args.max_connections.max(1),
+            max_per_client: args.max_connections_per_client.max(1),
+        },
     };
     let names: Vec<&str> = models.iter().map(|m| m.model.meta.name.as_str()).collect();
     tracing::info!(
@@ -208,7 +230,7 @@ fn run(args: Args) -> Result<(), String> {
         .enable_all()
         .build()
         .map_err(|e| e.to_string())?;
-    runtime.block_on(async move {
+    let result = runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind(args.addr)
             .await
             .map_err(|e| format!("cannot listen on {}: {e}", args.addr))?;
@@ -236,5 +258,9 @@ fn run(args: Args) -> Result<(), String> {
             tracing::warn!("stopped after the grace period with work unfinished");
         }
         Ok(())
-    })
+    });
+    // Dropping the runtime would wait for blocking tasks (a worker join
+    // still pending after the grace period): leave them behind instead.
+    runtime.shutdown_timeout(Duration::from_millis(100));
+    result
 }

@@ -538,7 +538,7 @@ fn run_detect(args: &DetectArgs) -> Result<(), Failure> {
         masks: args.masks,
         prune: !args.no_prune,
         max_pixels: args.max_pixels,
-        region: None,
+        ..DetectOptions::default()
     };
     let resp = detect_image(&img, &refs, &opts).map_err(Failure::input)?;
     if let Some(p) = &args.overlay {

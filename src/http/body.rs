@@ -8,19 +8,22 @@
 //! [`DRAIN_BYTES`] more) before it hands on the frame that passed the
 //! limit, which the extractors' own limit then refuses with the usual 413.
 //! A client sending still more may see the connection reset.
+//!
+//! Every body is read whole, paced by the request's deadline and a least
+//! rate ([`buffer`]), before the request takes a place in the queue: a
+//! client that is not sending holds no place.
 
 use std::pin::Pin;
 use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
 
 use axum::body::{Body, Bytes, HttpBody};
 use axum::extract::Request;
 use http_body::{Frame, SizeHint};
-use http_body_util::{BodyExt, Limited};
+use http_body_util::BodyExt;
 use tower::util::MapRequestLayer;
 
 use super::error::ApiError;
-use super::state::AppState;
-use crate::infer::Permit;
 
 /// How many bytes past a route's limit are read and discarded.
 pub const DRAIN_BYTES: usize = 64 << 20;
@@ -116,33 +119,82 @@ pub fn drain_past(limit: usize) -> MapRequestLayer<impl Fn(Request) -> Request +
     })
 }
 
-/// Reads and discards a request's body (within `limit`, and the drain
-/// past it), for an answer given without its content: the client then
-/// reads the answer rather than a reset connection.
-pub async fn discard(req: Request, limit: usize) {
-    let mut body = Limited::new(req.into_body(), limit);
-    while let Some(Ok(_)) = body.frame().await {}
+/// How a request's body must arrive: by the request's deadline, and at
+/// least at `min_rate` bytes per second on average once `grace` has
+/// passed (a client that stops sending is cut off after about `grace`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pacing {
+    pub deadline: Instant,
+    pub min_rate: u64,
+    pub grace: Duration,
 }
 
-/// A place in the queue for `req`; when the queue refuses, the body is
-/// read first (see [`discard`]) and the refusal returned.
-pub async fn admit(
-    state: &AppState,
-    req: Request,
-    limit: usize,
-) -> Result<(Permit, Request), ApiError> {
-    match state.infer.admit() {
-        Ok(permit) => Ok((permit, req)),
-        Err(e) => {
-            discard(req, limit).await;
-            Err(e.into())
+impl Pacing {
+    /// When the next bytes are due, `seen` bytes having arrived since
+    /// `start`.
+    fn due(&self, start: Instant, seen: usize) -> Instant {
+        let allowed = if self.min_rate == 0 {
+            Duration::MAX
+        } else {
+            self.grace
+                .saturating_add(Duration::from_secs_f64(seen as f64 / self.min_rate as f64))
+        };
+        start
+            .checked_add(allowed)
+            .map_or(self.deadline, |t| t.min(self.deadline))
+    }
+}
+
+/// Reads a request's whole body (within `limit` bytes, as `pacing` asks)
+/// before anything else is done with the request: a client that is slow
+/// or stalls is answered 408 and holds no place in the queue, a body over
+/// the limit 413 (after it was read on, see [`DrainPastLimit`]). Returns
+/// the request with its body in memory.
+pub async fn buffer(req: Request, limit: usize, pacing: &Pacing) -> Result<Request, ApiError> {
+    let (parts, mut body) = req.into_parts();
+    let start = Instant::now();
+    let mut buf: Vec<u8> = Vec::new();
+    loop {
+        let due = pacing.due(start, buf.len());
+        let frame = match tokio::time::timeout_at(due.into(), body.frame()).await {
+            Err(_) => {
+                let why = if due >= pacing.deadline {
+                    "before the request's deadline".to_string()
+                } else {
+                    format!(
+                        "at the least rate of {} bytes/s (after {} ms)",
+                        pacing.min_rate,
+                        pacing.grace.as_millis()
+                    )
+                };
+                return Err(ApiError::RequestTimeout(format!(
+                    "the request body did not arrive {why}: {} bytes in {:.1} s",
+                    buf.len(),
+                    start.elapsed().as_secs_f64()
+                )));
+            }
+            Ok(None) => break,
+            Ok(Some(Err(e))) => {
+                return Err(ApiError::BadRequest(format!("cannot read the body: {e}")))
+            }
+            Ok(Some(Ok(frame))) => frame,
+        };
+        if let Ok(data) = frame.into_data() {
+            if buf.len() + data.len() > limit {
+                return Err(ApiError::PayloadTooLarge(format!(
+                    "the body exceeds {limit} bytes"
+                )));
+            }
+            buf.extend_from_slice(&data);
         }
     }
+    Ok(Request::from_parts(parts, Body::from(buf)))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use http_body_util::Limited;
     use std::convert::Infallible;
 
     /// A body of `chunks` frames of `size` bytes that counts what was read.

@@ -22,6 +22,7 @@ use crate::infer::DetectTask;
 use crate::model::Model;
 use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, MaskMode};
 use crate::vision::mask::Mask;
+use crate::vision::Deadline;
 
 /// Response formats.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -202,7 +203,6 @@ async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
                 "send the image as image/jpeg, image/png or multipart/form-data, not {}",
                 other.unwrap_or("a body without Content-Type")
             ));
-            super::body::discard(req, limit).await;
             Err(e)
         }
     }
@@ -237,17 +237,21 @@ pub async fn detect(
 ) -> Result<Response, ApiError> {
     let arrived = Instant::now();
     let cfg = state.config;
+    // The query first only for its deadline; its errors are answered once
+    // the body is read, so that a client sending a large body with a bad
+    // query reads the 400 rather than a reset connection.
+    let query = DetectQuery::parse(raw.as_deref(), cfg.max_detections, cfg.max_timeout);
+    let timeout = query.as_ref().ok().and_then(|q| q.timeout);
+    let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
+    // The whole body before a place in the queue: a client that is not
+    // sending holds none.
+    let req = super::body::buffer(req, cfg.max_body_bytes, &state.pacing(deadline)).await?;
+    let query = query?;
     // Admission before decoding or keeping anything: an overload costs no
-    // work and no memory beyond the queue's (its body is only read, so that
-    // the client reads the 503 rather than a reset connection).
-    let (permit, req) = super::body::admit(&state, req, cfg.max_body_bytes).await?;
+    // decoding and no memory beyond the queue's.
+    let permit = state.infer.admit()?;
     let wants_png = accepts_png(req.headers());
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
-    // The query after the body (as for /pose), so that a client sending a
-    // large body with a bad query reads the 400 rather than a reset
-    // connection.
-    let query = DetectQuery::parse(raw.as_deref(), cfg.max_detections, cfg.max_timeout)?;
-    let deadline = arrived + query.timeout.unwrap_or(cfg.default_timeout);
     let models = select_models(&state, &query.models)?;
     let format = query
         .format
@@ -271,6 +275,7 @@ pub async fn detect(
             prune: true,
             max_pixels: limits.max_pixels,
             region: None,
+            deadline: Deadline::NONE,
         },
     };
     let resp = state.infer.detect(permit, task, deadline).await?;

@@ -35,8 +35,10 @@ pub enum ApiError {
     Overloaded,
     #[error("the service is not ready: {0}")]
     NotReady(String),
-    #[error("the request's deadline passed before it was computed")]
+    #[error("the request's deadline passed before it was answered")]
     DeadlineExceeded,
+    #[error("{0}")]
+    RequestTimeout(String),
     #[error("internal error: {0}")]
     Internal(String),
 }
@@ -60,6 +62,7 @@ impl ApiError {
             ApiError::Overloaded | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
                 StatusCode::SERVICE_UNAVAILABLE
             }
+            ApiError::RequestTimeout(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -76,6 +79,7 @@ impl ApiError {
             ApiError::Overloaded => "overloaded",
             ApiError::NotReady(_) => "not_ready",
             ApiError::DeadlineExceeded => "deadline_exceeded",
+            ApiError::RequestTimeout(_) => "request_timeout",
             ApiError::Internal(_) => "internal",
         }
     }
@@ -120,6 +124,7 @@ impl From<VisionError> for ApiError {
     fn from(e: VisionError) -> Self {
         match e {
             VisionError::ImageTooLarge { .. } => ApiError::PayloadTooLarge(e.to_string()),
+            VisionError::DeadlineExceeded => ApiError::DeadlineExceeded,
             // An image the detector cannot use (empty, smaller than a
             // template): the request was well formed, its content is not.
             _ => ApiError::Unprocessable(e.to_string()),
@@ -132,6 +137,7 @@ impl From<PoseError> for ApiError {
         match e {
             PoseError::MeshTooLarge { .. } => ApiError::PayloadTooLarge(e.to_string()),
             PoseError::UnknownModel(name) => ApiError::UnknownModel(name),
+            PoseError::DeadlineExceeded => ApiError::DeadlineExceeded,
             // A well-formed request whose mesh, mask or parameters cannot
             // be used, or whose object shows too few edges.
             PoseError::InvalidMesh(_)

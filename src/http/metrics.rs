@@ -1,15 +1,12 @@
 //! Prometheus metrics of the HTTP layer, and the middleware that records
 //! them: requests by route and status, and their durations.
 
-use std::sync::Arc;
 use std::time::Instant;
 
 use axum::extract::{MatchedPath, Request, State};
 use axum::middleware::Next;
 use axum::response::Response;
 use prometheus::{HistogramOpts, HistogramVec, IntCounterVec, Opts, Registry};
-
-use super::state::AppState;
 
 #[derive(Clone)]
 pub struct HttpMetrics {
@@ -44,7 +41,7 @@ impl HttpMetrics {
 
 /// Records every request (the route label is the matched route pattern, so
 /// its values are bounded).
-pub async fn track(State(state): State<Arc<AppState>>, req: Request, next: Next) -> Response {
+pub async fn track(State(m): State<HttpMetrics>, req: Request, next: Next) -> Response {
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -52,7 +49,6 @@ pub async fn track(State(state): State<Arc<AppState>>, req: Request, next: Next)
         .to_string();
     let start = Instant::now();
     let resp = next.run(req).await;
-    let m = &state.metrics;
     m.requests
         .with_label_values(&[route.as_str(), resp.status().as_str()])
         .inc();

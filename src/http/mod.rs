@@ -3,6 +3,7 @@
 //! Only this layer knows about HTTP.
 
 pub mod body;
+pub mod conn;
 pub mod detect;
 pub mod error;
 pub mod image;
@@ -53,7 +54,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/models", get(ops::models))
         .route("/openapi.yaml", get(ops::openapi))
         .route_layer(axum::middleware::from_fn_with_state(
-            Arc::clone(&state),
+            state.metrics.clone(),
             metrics::track,
         ))
         .fallback(|| async { ApiError::NotFound("no such endpoint".into()) })
@@ -99,7 +100,9 @@ pub async fn warm_up(state: &AppState) -> Result<(), InferError> {
 
 /// Serves until `shutdown` resolves, then becomes not ready, stops
 /// admitting, lets requests in flight finish (at most `grace`), and drains
-/// the queue. Returns whether everything finished within the grace period.
+/// the queue. Returns whether everything finished within the grace period;
+/// either way it returns within it (a computation still running is left
+/// behind: the caller exits without waiting for it).
 pub async fn serve(
     listener: tokio::net::TcpListener,
     state: Arc<AppState>,
@@ -109,6 +112,7 @@ pub async fn serve(
     let app = router(Arc::clone(&state));
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let signal_state = Arc::clone(&state);
+    let listener = conn::LimitedListener::new(listener, state.config.connections);
     let server = axum::serve(listener, app).with_graceful_shutdown(async move {
         shutdown.await;
         signal_state.begin_shutdown();
@@ -116,13 +120,16 @@ pub async fn serve(
         let _ = tx.send(());
     });
     let server = tokio::spawn(async move { server.await });
-    // Wait for the signal, then give the server the grace period.
+    // Wait for the signal, then give the server and the queue one grace
+    // period together.
     let _ = rx.await;
-    let drained = match tokio::time::timeout(grace, server).await {
+    let until = tokio::time::Instant::now() + grace;
+    let drained = match tokio::time::timeout_at(until, server).await {
         Ok(Ok(Ok(()))) => true,
         Ok(Ok(Err(e))) => return Err(e),
         _ => false,
     };
-    let queue_done = state.infer.shutdown(grace).await;
+    let left = until.saturating_duration_since(tokio::time::Instant::now());
+    let queue_done = state.infer.shutdown(left).await;
     Ok(drained && queue_done)
 }

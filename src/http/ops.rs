@@ -63,6 +63,10 @@ pub struct Limits {
     pub queue_size: usize,
     pub max_batch: usize,
     pub max_batch_delay_ms: u64,
+    pub min_body_rate: u64,
+    pub body_grace_ms: u64,
+    pub max_connections: usize,
+    pub max_connections_per_client: usize,
 }
 
 #[derive(Serialize)]
@@ -93,6 +97,10 @@ pub async fn info(State(state): State<Arc<AppState>>) -> Json<Info> {
             queue_size: q.queue_size,
             max_batch: q.max_batch,
             max_batch_delay_ms: q.max_batch_delay.as_millis() as u64,
+            min_body_rate: c.min_body_rate,
+            body_grace_ms: c.body_grace.as_millis() as u64,
+            max_connections: c.connections.max_total,
+            max_connections_per_client: c.connections.max_per_client,
         },
         models: state
             .models

@@ -56,7 +56,6 @@ async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
                 "send multipart/form-data with the parts image, mesh, params and optionally mask, not {}",
                 other.unwrap_or("a body without Content-Type")
             ));
-            super::body::discard(req, limit).await;
             return Err(e);
         }
     }
@@ -121,13 +120,20 @@ pub async fn pose(
 ) -> Result<Response, ApiError> {
     let arrived = Instant::now();
     let cfg = state.config;
+    // The query first only for its deadline (see /detect).
+    let timeout = parse_query(raw.as_deref(), cfg.max_timeout);
+    let deadline = arrived
+        + timeout
+            .as_ref()
+            .ok()
+            .copied()
+            .flatten()
+            .unwrap_or(cfg.default_timeout);
+    let req = super::body::buffer(req, cfg.max_pose_body_bytes, &state.pacing(deadline)).await?;
+    timeout?;
     // Admission before keeping anything, as for /detect.
-    let (permit, req) = super::body::admit(&state, req, cfg.max_pose_body_bytes).await?;
+    let permit = state.infer.admit()?;
     let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
-    // The query after the body, so that a client sending a large body
-    // with a bad query reads the 400 rather than a reset connection.
-    let timeout = parse_query(raw.as_deref(), cfg.max_timeout)?;
-    let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
     let missing =
         |name: &str| ApiError::BadRequest(format!("the multipart body has no `{name}` part"));
     let image = parts.image.ok_or_else(|| missing("image"))?;
@@ -150,6 +156,7 @@ pub async fn pose(
         // Checked here so that a bad request is refused before it queues.
         params.check((image.width(), image.height()), mask.as_ref())?;
         let mesh = Mesh::parse(&mesh)?;
+        params.check_projection(&mesh, (image.width(), image.height()))?;
         Ok::<_, ApiError>(PoseTask {
             image: Arc::new(image),
             mesh,

@@ -11,6 +11,8 @@ use serde::Serialize;
 use sha2::{Digest, Sha256};
 use thiserror::Error;
 
+use super::body::Pacing;
+use super::conn::ConnLimits;
 use super::image::ImageLimits;
 use super::metrics::HttpMetrics;
 use crate::infer::Infer;
@@ -31,6 +33,13 @@ pub struct HttpConfig {
     pub max_timeout: Duration,
     /// Largest `max_detections` a request may ask for.
     pub max_detections: usize,
+    /// A request body must arrive at least this fast (bytes per second,
+    /// on average once `body_grace` has passed); 0: only the deadline.
+    pub min_body_rate: u64,
+    /// How long a body may take before `min_body_rate` applies.
+    pub body_grace: Duration,
+    /// Open connections at most, in all and per client address.
+    pub connections: ConnLimits,
 }
 
 impl Default for HttpConfig {
@@ -42,6 +51,9 @@ impl Default for HttpConfig {
             default_timeout: Duration::from_secs(30),
             max_timeout: Duration::from_secs(300),
             max_detections: 100,
+            min_body_rate: 16 << 10,
+            body_grace: Duration::from_secs(5),
+            connections: ConnLimits::default(),
         }
     }
 }
@@ -129,6 +141,7 @@ pub enum NotReady {
     WarmingUp,
     ShuttingDown,
     BackendUnhealthy,
+    Overrunning,
 }
 
 impl NotReady {
@@ -137,6 +150,7 @@ impl NotReady {
             NotReady::WarmingUp => "models are warming up",
             NotReady::ShuttingDown => "shutting down",
             NotReady::BackendUnhealthy => "the compute backend failed",
+            NotReady::Overrunning => "a computation is running past its deadline",
         }
     }
 }
@@ -166,6 +180,8 @@ impl AppState {
             Err(NotReady::ShuttingDown)
         } else if !self.infer.backend_healthy() {
             Err(NotReady::BackendUnhealthy)
+        } else if self.infer.overrunning() {
+            Err(NotReady::Overrunning)
         } else if !self.ready.load(Ordering::Acquire) {
             Err(NotReady::WarmingUp)
         } else {
@@ -181,6 +197,15 @@ impl AppState {
     pub fn begin_shutdown(&self) {
         self.shutting_down.store(true, Ordering::Release);
         self.infer.stop_admitting();
+    }
+
+    /// How a request body with this deadline must arrive.
+    pub fn pacing(&self, deadline: std::time::Instant) -> Pacing {
+        Pacing {
+            deadline,
+            min_rate: self.config.min_body_rate,
+            grace: self.config.body_grace,
+        }
     }
 
     /// The model named `name`.

@@ -15,7 +15,7 @@
 mod metrics;
 mod queue;
 
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, Sender};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -174,6 +174,33 @@ struct Shared {
     backend_healthy: AtomicBool,
     backend_info: std::sync::RwLock<BackendInfo>,
     metrics: InferMetrics,
+    /// The watchdog's clock: instants are kept as microseconds since it.
+    epoch: Instant,
+    /// The last deadline of the batch the worker computes (microseconds
+    /// since `epoch`, plus one), 0 while it computes none.
+    busy_until: AtomicU64,
+}
+
+/// Marks the worker busy with a batch until dropped (see
+/// [`Infer::overrunning`]).
+pub(crate) struct Busy<'a>(&'a Shared);
+
+impl Drop for Busy<'_> {
+    fn drop(&mut self) {
+        self.0.busy_until.store(0, Ordering::Release);
+    }
+}
+
+impl Shared {
+    /// The worker computes a batch whose last deadline is `deadline`.
+    pub(crate) fn busy(&self, deadline: Option<Instant>) -> Busy<'_> {
+        let us = deadline.map_or(u64::MAX, |d| {
+            d.saturating_duration_since(self.epoch).as_micros() as u64
+        });
+        self.busy_until
+            .store(us.saturating_add(1), Ordering::Release);
+        Busy(self)
+    }
 }
 
 /// The handle to the queue, cheap to clone.
@@ -205,6 +232,8 @@ impl Infer {
             backend_healthy: AtomicBool::new(backend.healthy()),
             backend_info: std::sync::RwLock::new(backend.info()),
             metrics,
+            epoch: Instant::now(),
+            busy_until: AtomicU64::new(0),
         });
         shared.metrics.backend_healthy.set(1);
         let worker_shared = Arc::clone(&shared);
@@ -233,6 +262,17 @@ impl Infer {
     /// The backend has not failed.
     pub fn backend_healthy(&self) -> bool {
         self.shared.backend_healthy.load(Ordering::Acquire)
+    }
+
+    /// The worker is still computing a batch whose every deadline has
+    /// passed: it should have given up, so the service is not ready
+    /// (readiness answers 503 until it has).
+    pub fn overrunning(&self) -> bool {
+        let until = self.shared.busy_until.load(Ordering::Acquire);
+        until != 0 && {
+            let now = self.shared.epoch.elapsed().as_micros() as u64;
+            now.saturating_add(1) > until
+        }
     }
 
     /// Requests admitted and not yet taken by the worker.
@@ -355,5 +395,33 @@ async fn wait<T>(
         )),
         // Dropping the receiver here tells the worker not to compute it.
         Err(_) => Err(InferError::DeadlineExceeded),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::CpuBackend;
+
+    #[test]
+    fn the_watchdog_sees_a_batch_past_its_deadline() {
+        let registry = prometheus::Registry::new();
+        let infer = Infer::start(
+            Box::new(CpuBackend),
+            InferConfig::default(),
+            InferMetrics::new(&registry).unwrap(),
+        )
+        .unwrap();
+        let shared = &infer.shared;
+        assert!(!infer.overrunning());
+        {
+            let _busy = shared.busy(Some(Instant::now() + Duration::from_secs(60)));
+            assert!(!infer.overrunning(), "within its deadline");
+        }
+        {
+            let _busy = shared.busy(Some(Instant::now() - Duration::from_millis(1)));
+            assert!(infer.overrunning(), "past its deadline");
+        }
+        assert!(!infer.overrunning(), "idle again");
     }
 }

@@ -19,6 +19,7 @@ use crate::pose::PoseError;
 use crate::vision::detect::DenseBounds;
 use crate::vision::image::ColorImage;
 use crate::vision::pyramid::FeaturePyramid;
+use crate::vision::Deadline;
 
 /// Runs until the queue's channel is closed and empty.
 pub(super) fn run(rx: Receiver<Job>, mut backend: Box<dyn Backend>, shared: &Shared) {
@@ -46,18 +47,22 @@ pub(super) fn run(rx: Receiver<Job>, mut backend: Box<dyn Backend>, shared: &Sha
 impl Work {
     /// The image, models and options of the detection this request needs,
     /// if any (a pose request with `mask: "detect"` needs one).
-    fn detection(&self) -> Option<(&ColorImage, Vec<&Model>, DetectOptions)> {
+    /// Its computation gives up at `deadline`.
+    fn detection(&self, deadline: Deadline) -> Option<(&ColorImage, Vec<&Model>, DetectOptions)> {
         match self {
             Work::Detect(t, _) => Some((
                 &t.image,
                 t.models.iter().map(|m| m.as_ref()).collect(),
-                t.opts,
+                DetectOptions { deadline, ..t.opts },
             )),
             Work::Pose(t, _) => t.model.as_ref().map(|m| {
                 (
                     t.image.as_ref(),
                     vec![m.as_ref()],
-                    t.params.detect_options(&t.mesh),
+                    DetectOptions {
+                        deadline,
+                        ..t.params.detect_options(&t.mesh)
+                    },
                 )
             }),
         }
@@ -89,8 +94,18 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     }
     metrics.batch_size.observe(live.len() as f64);
     let start = Instant::now();
-    let items: Vec<Work> = live.into_iter().map(|job| job.work).collect();
-    let detections: Vec<_> = items.iter().map(Work::detection).collect();
+    // The watchdog: while the worker computes this batch, readiness turns
+    // 503 once the batch's last deadline has passed.
+    let _busy = shared.busy(live.iter().map(|job| job.deadline).max());
+    let (items, deadlines): (Vec<Work>, Vec<Deadline>) = live
+        .into_iter()
+        .map(|job| (job.work, Deadline::at(job.deadline)))
+        .unzip();
+    let detections: Vec<_> = items
+        .iter()
+        .zip(&deadlines)
+        .map(|(w, d)| w.detection(*d))
+        .collect();
     let settings: Vec<_> = detections
         .iter()
         .map(|d| d.as_ref().map(|(_, models, _)| feature_settings(models)))
@@ -154,8 +169,12 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
         .write()
         .unwrap_or_else(|e| e.into_inner()) = backend.info();
     drop(detections);
-    items.into_par_iter().zip(pyramids).zip(bounds).for_each(
-        |((item, pyrs), (bounds, bounds_ms))| {
+    items
+        .into_par_iter()
+        .zip(pyramids)
+        .zip(bounds)
+        .zip(deadlines)
+        .for_each(|(((item, pyrs), (bounds, bounds_ms)), deadline)| {
             if item.closed() {
                 metrics.job("cancelled");
                 return;
@@ -174,7 +193,13 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                 Work::Detect(task, tx) => {
                     let result = catch_unwind(AssertUnwindSafe(|| {
                         let models: Vec<&Model> = task.models.iter().map(|m| m.as_ref()).collect();
-                        detect(&models, &task.opts)
+                        detect(
+                            &models,
+                            &DetectOptions {
+                                deadline,
+                                ..task.opts
+                            },
+                        )
                     }))
                     .unwrap_or_else(|_| Err(InferError::Internal("detection failed".into())));
                     let ok = result.is_ok();
@@ -191,12 +216,23 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                             model,
                         } = *task;
                         let found = match &model {
-                            Some(m) => Some(detect(&[m.as_ref()], &params.detect_options(&mesh))?),
+                            Some(m) => Some(detect(
+                                &[m.as_ref()],
+                                &DetectOptions {
+                                    deadline,
+                                    ..params.detect_options(&mesh)
+                                },
+                            )?),
                             None => None,
                         };
-                        estimate_with(&image, &mesh, &params, mask, |name| {
-                            found.ok_or_else(|| PoseError::UnknownModel(name.to_string()))
-                        })
+                        estimate_with(
+                            &image,
+                            &mesh,
+                            &params,
+                            mask,
+                            |name| found.ok_or_else(|| PoseError::UnknownModel(name.to_string())),
+                            deadline,
+                        )
                         .map_err(InferError::from)
                     }))
                     .unwrap_or_else(|_| Err(InferError::Internal("pose refinement failed".into())));
@@ -209,6 +245,5 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
             metrics
                 .compute_duration
                 .observe(start.elapsed().as_secs_f64());
-        },
-    );
+        });
 }

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::geometry::{projected_box, Intrinsics, Pose};
-use super::irls::{refine, IrlsParams};
+use super::irls::{refine_until, IrlsParams};
 use super::mesh::Mesh;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
@@ -13,6 +13,7 @@ use crate::pipeline::{detect_image, DetectOptions, DetectResponse, DetectionJson
 use crate::vision::detect::Region;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
+use crate::vision::Deadline;
 
 /// A camera-from-object pose as clients write it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -101,6 +102,15 @@ pub fn detect_options(expected: Option<(f64, f64, f64, f64)>) -> DetectOptions {
     }
 }
 
+/// The largest projected size of the mesh at the initial pose, in image
+/// sizes (each side): a larger projection is refused rather than drawn,
+/// since the work of a refinement grows with it.
+pub const MAX_PROJECTED_IMAGES: f64 = 4.0;
+
+/// The smallest projected size (pixels, the larger side of its box) of
+/// the mesh at the initial pose: nothing smaller has edges to fit.
+pub const MIN_PROJECTED_PX: f64 = 4.0;
+
 /// A pose request checked before any work: the initial pose (projected to
 /// a rotation), the refinement settings and where the mask comes from.
 #[derive(Clone, Debug, PartialEq)]
@@ -176,6 +186,50 @@ impl PoseParams {
             source,
         })
     }
+
+    /// Checks where the initial pose puts `mesh` in an image of
+    /// `image_size`: wholly in front of the camera, projected to at most
+    /// [`MAX_PROJECTED_IMAGES`] times the image and at least
+    /// [`MIN_PROJECTED_PX`]. Cheap (one pass over the vertices), so it runs
+    /// before a request queues.
+    pub fn check_projection(
+        &self,
+        mesh: &Mesh,
+        image_size: (usize, usize),
+    ) -> Result<(), PoseError> {
+        let pose = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)?;
+        self.intrinsics.validate()?;
+        let nearest = mesh
+            .vertices
+            .iter()
+            .map(|v| pose.transform(v).z)
+            .fold(f64::INFINITY, f64::min);
+        let extent = mesh.vertices.iter().map(|v| v.norm()).fold(0.0, f64::max);
+        // In front of the camera by more than a sliver of the object's
+        // size: a mesh through the camera plane projects without bound.
+        if nearest.is_nan() || nearest <= 1e-3 * extent.max(f64::MIN_POSITIVE) {
+            return Err(PoseError::InvalidParameter(format!(
+                "the initial pose puts the object at or behind the camera plane (its nearest vertex at z = {nearest:.3e}): the translation must place it in front of the camera"
+            )));
+        }
+        let (w, h) = (image_size.0 as f64, image_size.1 as f64);
+        let Some((_, _, bw, bh)) = projected_box(&mesh.vertices, &self.intrinsics, &pose) else {
+            return Err(PoseError::InvalidParameter(
+                "the initial pose projects no vertex into the camera".into(),
+            ));
+        };
+        if bw > MAX_PROJECTED_IMAGES * w || bh > MAX_PROJECTED_IMAGES * h {
+            return Err(PoseError::InvalidParameter(format!(
+                "the initial pose and intrinsics project the object to {bw:.3e} x {bh:.3e} pixels, more than {MAX_PROJECTED_IMAGES} times the {w}x{h} image: check fx, fy and the translation's units"
+            )));
+        }
+        if bw.max(bh) < MIN_PROJECTED_PX {
+            return Err(PoseError::InvalidParameter(format!(
+                "the initial pose and intrinsics project the object to {bw:.3e} x {bh:.3e} pixels, less than {MIN_PROJECTED_PX}: check fx, fy and the translation's units"
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// Estimates the pose of `mesh` in `img` as `params` ask; `mask` is the
@@ -188,30 +242,39 @@ pub fn estimate(
     mask: Option<Mask>,
     models: &[&Model],
 ) -> Result<PoseResponse, PoseError> {
-    estimate_with(img, mesh, params, mask, |name| {
-        let model = models
-            .iter()
-            .find(|m| m.meta.name == name)
-            .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
-        detect_image(img, &[model], &params.detect_options(mesh))
-            .map_err(|e| PoseError::InvalidParameter(e.to_string()))
-    })
+    estimate_with(
+        img,
+        mesh,
+        params,
+        mask,
+        |name| {
+            let model = models
+                .iter()
+                .find(|m| m.meta.name == name)
+                .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
+            detect_image(img, &[model], &params.detect_options(mesh))
+                .map_err(|e| PoseError::InvalidParameter(e.to_string()))
+        },
+        Deadline::NONE,
+    )
 }
 
 /// [`estimate`] with the detection left to `detect`, which runs the named
 /// model on the image with [`PoseParams::detect_options`] (the service runs
-/// it on its backend's pyramids).
+/// it on its backend's pyramids); gives up once `deadline` has passed.
 pub fn estimate_with<F>(
     img: &ColorImage,
     mesh: &Mesh,
     params: &PoseParams,
     mask: Option<Mask>,
     detect: F,
+    deadline: Deadline,
 ) -> Result<PoseResponse, PoseError>
 where
     F: FnOnce(&str) -> Result<DetectResponse, PoseError>,
 {
     let checked = params.check((img.width(), img.height()), mask.as_ref())?;
+    params.check_projection(mesh, (img.width(), img.height()))?;
     let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
     let (mask, used, detection) = match checked.source {
         MaskSource::None => (None, MaskUsed::None, None),
@@ -231,13 +294,14 @@ where
             (Some(m), MaskUsed::Detected, Some(det))
         }
     };
-    let r = refine(
+    let r = refine_until(
         img,
         &edges,
         &params.intrinsics,
         &checked.initial,
         mask.as_ref(),
         &checked.irls,
+        deadline,
     )?;
     Ok(PoseResponse {
         pose: PoseOut {
@@ -271,4 +335,48 @@ pub fn mask_from_image(img: &image::DynamicImage) -> Mask {
         }
     }
     m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(fx: f64, t: [f64; 3]) -> PoseParams {
+        PoseParams {
+            intrinsics: Intrinsics {
+                fx,
+                fy: fx,
+                cx: 320.0,
+                cy: 240.0,
+            },
+            initial_pose: PoseJson {
+                rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                translation: t,
+            },
+            model: None,
+            mask: None,
+            max_iterations: None,
+        }
+    }
+
+    #[test]
+    fn projections_without_bound_or_without_size_are_refused() {
+        let mesh = Mesh::cuboid(0.1, 0.1, 0.1);
+        let size = (640, 480);
+        assert!(params(600.0, [0.0, 0.0, 0.5])
+            .check_projection(&mesh, size)
+            .is_ok());
+        for (p, why) in [
+            (params(1e12, [0.0, 0.0, 1.0]), "more than 4 times"),
+            (params(600.0, [0.0, 0.0, 1e-6]), "camera plane"),
+            (params(600.0, [0.0, 0.0, -0.5]), "camera plane"),
+            (params(600.0, [0.0, 0.0, 0.06]), "more than 4 times"),
+            (params(1e-3, [0.0, 0.0, 0.5]), "less than 4"),
+        ] {
+            match p.check_projection(&mesh, size) {
+                Err(PoseError::InvalidParameter(m)) => assert!(m.contains(why), "{m}"),
+                other => panic!("{:?}: {other:?}", p.initial_pose),
+            }
+        }
+    }
 }

@@ -10,6 +10,11 @@ use nalgebra::{Vector2, Vector3};
 
 use super::geometry::{Intrinsics, Pose};
 use super::mesh::Mesh;
+use super::PoseError;
+use crate::vision::Deadline;
+
+/// Triangles (or edges) drawn between two looks at the deadline.
+const DEADLINE_STRIDE: usize = 512;
 
 /// An edge of the mesh and its one or two faces.
 #[derive(Clone, Copy, Debug)]
@@ -71,6 +76,8 @@ pub struct DepthBuffer {
 ///
 /// With `cull_back`, triangles facing away from the camera are skipped:
 /// right only for a closed mesh wound outwards (see [`EdgeModel::solid`]).
+/// Gives up once `deadline` has passed.
+#[allow(clippy::too_many_arguments)]
 pub fn rasterize(
     vertices: &[Vector3<f64>],
     triangles: &[[u32; 3]],
@@ -79,7 +86,8 @@ pub fn rasterize(
     width: usize,
     height: usize,
     cull_back: bool,
-) -> DepthBuffer {
+    deadline: &Deadline,
+) -> Result<DepthBuffer, PoseError> {
     let cam: Vec<Vector3<f64>> = vertices.iter().map(|v| pose.transform(v)).collect();
     // Each vertex projected once (the image of one in front of the camera;
     // only triangles wholly in front are drawn).
@@ -104,6 +112,9 @@ pub fn rasterize(
     let mut inv_depth = vec![0.0f32; ww * wh];
     let mut face = vec![u32::MAX; ww * wh];
     for (fi, t) in triangles.iter().enumerate() {
+        if fi % DEADLINE_STRIDE == 0 && deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
         let (Some(s0), Some(s1), Some(s2)) = (
             proj[t[0] as usize],
             proj[t[1] as usize],
@@ -190,13 +201,13 @@ pub fn rasterize(
             }
         }
     }
-    DepthBuffer {
+    Ok(DepthBuffer {
         width,
         height,
         window: (wx0, wy0, ww, wh),
         inv_depth,
         face,
-    }
+    })
 }
 
 impl DepthBuffer {
@@ -305,7 +316,14 @@ impl EdgeModel {
     }
 
     /// Depth of the mesh at `pose` (see [`rasterize`]).
-    pub fn depth(&self, k: &Intrinsics, pose: &Pose, width: usize, height: usize) -> DepthBuffer {
+    pub fn depth(
+        &self,
+        k: &Intrinsics,
+        pose: &Pose,
+        width: usize,
+        height: usize,
+        deadline: &Deadline,
+    ) -> Result<DepthBuffer, PoseError> {
         rasterize(
             &self.vertices,
             &self.triangles,
@@ -314,6 +332,7 @@ impl EdgeModel {
             width,
             height,
             self.solid,
+            deadline,
         )
     }
 
@@ -346,20 +365,26 @@ impl EdgeModel {
     /// silhouette edges at `pose`, inside the image. The spacing runs on
     /// from one edge to the next, so that a dense mesh (edges shorter than
     /// `step`) gets as many samples as its outline's length asks, not one
-    /// per edge.
+    /// per edge. Only the part of each projected edge inside the image is
+    /// walked, so the work is bounded by the image whatever the
+    /// projection; gives up once `deadline` has passed.
     pub fn samples(
         &self,
         k: &Intrinsics,
         pose: &Pose,
         depth: &DepthBuffer,
         step: f64,
-    ) -> Vec<EdgeSample> {
+        deadline: &Deadline,
+    ) -> Result<Vec<EdgeSample>, PoseError> {
         let mut out = Vec::new();
         let (w, h) = (depth.width as f64, depth.height as f64);
         // Distance (pixels) from the start of the next edge to its first
         // sample.
         let mut next = 0.5 * step;
-        for e in &self.edges {
+        for (ei, e) in self.edges.iter().enumerate() {
+            if ei % DEADLINE_STRIDE == 0 && deadline.passed() {
+                return Err(PoseError::DeadlineExceeded);
+            }
             let use_it = if e.boundary {
                 true
             } else {
@@ -388,7 +413,17 @@ impl EdgeModel {
                 0
             };
             next = first + n as f64 * step - len;
-            for i in 0..n {
+            // The samples whose 2-D point lies in the image (a pixel of
+            // margin): the rest were dropped below anyway.
+            let Some((c0, c1)) = clip_to_box(pa, d, w, h) else {
+                continue;
+            };
+            let i0 = ((c0 * len - first) / step).ceil().max(0.0);
+            let i1 = ((c1 * len - first) / step).floor().min(n as f64 - 1.0);
+            if i0.is_nan() || i1.is_nan() || i0 > i1 {
+                continue;
+            }
+            for i in i0 as usize..=i1 as usize {
                 // Parameter along the 3-D edge whose projection is the
                 // 2-D point at fraction f (projection is not linear).
                 let f = (first + i as f64 * step) / len;
@@ -418,8 +453,35 @@ impl EdgeModel {
                 }
             }
         }
-        out
+        Ok(out)
     }
+}
+
+/// The parameter interval `[t0, t1]` within `[0, 1]` of the segment
+/// `a + t d` that lies in the box `[-1, w + 1] x [-1, h + 1]` (Liang-Barsky);
+/// `None` when it misses the box.
+fn clip_to_box(a: Vector2<f64>, d: Vector2<f64>, w: f64, h: f64) -> Option<(f64, f64)> {
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-d.x, a.x + 1.0),
+        (d.x, w + 1.0 - a.x),
+        (-d.y, a.y + 1.0),
+        (d.y, h + 1.0 - a.y),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return None;
+            }
+        } else {
+            let r = q / p;
+            if p < 0.0 {
+                t0 = t0.max(r);
+            } else {
+                t1 = t1.min(r);
+            }
+        }
+    }
+    (t0 <= t1).then_some((t0, t1))
 }
 
 #[cfg(test)]
@@ -508,7 +570,17 @@ mod tests {
                 assert!(EdgeModel::new(mesh, 30.0).solid());
                 // Culling the back faces of a solid changes nothing.
                 let cull = rng.next_f64() < 0.5;
-                let d = rasterize(&mesh.vertices, &mesh.triangles, &k, &pose, 80, 60, cull);
+                let d = rasterize(
+                    &mesh.vertices,
+                    &mesh.triangles,
+                    &k,
+                    &pose,
+                    80,
+                    60,
+                    cull,
+                    &Deadline::NONE,
+                )
+                .unwrap();
                 let mut covered = 0;
                 for y in 0..60 {
                     for x in 0..80 {
@@ -545,14 +617,58 @@ mod tests {
     }
 
     #[test]
+    fn a_huge_projection_is_sampled_only_inside_the_image() {
+        let (mut k, pose) = setup();
+        let em = EdgeModel::new(&Mesh::cuboid(0.1, 0.1, 0.1), 30.0);
+        // With a focal length of 1e9 the edges project to ~1e8 pixels:
+        // walked whole, that is ~1e8 steps per edge.
+        k.fx = 1e9;
+        k.fy = 1e9;
+        let depth = em.depth(&k, &pose, 320, 240, &Deadline::NONE).unwrap();
+        let t = std::time::Instant::now();
+        let samples = em.samples(&k, &pose, &depth, 2.0, &Deadline::NONE).unwrap();
+        assert!(t.elapsed().as_secs_f64() < 1.0, "{:?}", t.elapsed());
+        // At most every edge across the image's diagonal.
+        assert!(samples.len() <= 12 * 400 / 2, "{}", samples.len());
+        for s in &samples {
+            assert!(s.pixel.x >= 0.0 && s.pixel.x < 320.0);
+            assert!(s.pixel.y >= 0.0 && s.pixel.y < 240.0);
+        }
+        // A deadline that has passed stops the sampler and the rasteriser.
+        let past = Deadline::at(std::time::Instant::now());
+        assert_eq!(
+            em.samples(&k, &pose, &depth, 2.0, &past).unwrap_err(),
+            PoseError::DeadlineExceeded
+        );
+        assert!(matches!(
+            em.depth(&k, &pose, 320, 240, &past),
+            Err(PoseError::DeadlineExceeded)
+        ));
+    }
+
+    #[test]
+    fn clipping_keeps_the_part_of_a_segment_in_the_box() {
+        let a = Vector2::new(-100.0, 50.0);
+        let d = Vector2::new(300.0, 0.0);
+        let (t0, t1) = clip_to_box(a, d, 100.0, 100.0).unwrap();
+        assert!((a.x + t0 * d.x + 1.0).abs() < 1e-9);
+        assert!((a.x + t1 * d.x - 101.0).abs() < 1e-9);
+        assert_eq!(clip_to_box(a, Vector2::new(0.0, 10.0), 100.0, 100.0), None);
+        assert_eq!(
+            clip_to_box(Vector2::new(5.0, 5.0), Vector2::new(1.0, 1.0), 100.0, 100.0),
+            Some((0.0, 1.0))
+        );
+    }
+
+    #[test]
     fn cube_edges_hidden_behind_it_are_removed() {
         let (k, pose) = setup();
         let mesh = Mesh::cuboid(0.1, 0.1, 0.1);
         let em = EdgeModel::new(&mesh, 30.0);
         // 12 crease edges; diagonals of the faces are not creases.
         assert_eq!(em.edges.iter().filter(|e| e.crease).count(), 12);
-        let depth = em.depth(&k, &pose, 320, 240);
-        let samples = em.samples(&k, &pose, &depth, 2.0);
+        let depth = em.depth(&k, &pose, 320, 240, &Deadline::NONE).unwrap();
+        let samples = em.samples(&k, &pose, &depth, 2.0, &Deadline::NONE).unwrap();
         // A cube seen in general position shows 9 of its 12 edges: no
         // sample lies on the 3 edges at the hidden corner.
         let hidden_corner = (0..8)
@@ -591,8 +707,8 @@ mod tests {
         };
         let mesh = Mesh::cylinder(0.04, 0.12, 48);
         let em = EdgeModel::new(&mesh, 30.0);
-        let depth = em.depth(&k, &pose, 320, 240);
-        let samples = em.samples(&k, &pose, &depth, 2.0);
+        let depth = em.depth(&k, &pose, 320, 240, &Deadline::NONE).unwrap();
+        let samples = em.samples(&k, &pose, &depth, 2.0, &Deadline::NONE).unwrap();
         // Seen from the side: two long vertical silhouettes of about
         // 0.12 * 600 / 0.6 = 120 px each, plus the near halves of the rims.
         let vertical = samples.iter().filter(|s| s.normal.x.abs() > 0.99).count();

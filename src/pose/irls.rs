@@ -19,6 +19,7 @@ use super::geometry::{Intrinsics, Pose};
 use super::PoseError;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
+use crate::vision::Deadline;
 
 /// Settings of the refinement.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -443,6 +444,8 @@ struct Context<'a> {
     initial: Pose,
     /// The box corners' image positions at the initial pose.
     anchors: [Option<Vector2<f64>>; 8],
+    /// When to give up.
+    deadline: Deadline,
 }
 
 /// One refinement from one start pose.
@@ -503,25 +506,28 @@ impl Context<'_> {
     /// moved in the image from the initial pose. The prior matters where
     /// the edges leave the pose ambiguous (a crease without contrast, a
     /// small visible part): there the pose near the client's start wins.
-    fn score(&self, pose: &Pose) -> f64 {
+    fn score(&self, pose: &Pose) -> Result<f64, PoseError> {
         let moved = self.displacement(pose, &self.initial);
-        self.matched(pose) as f64 - self.params.prior_weight * moved
+        Ok(self.matched(pose)? as f64 - self.params.prior_weight * moved)
     }
 
     /// The visible model edge samples at `pose` that lie in the mask (grown
     /// by the margin) and have a compatible image edge within [`AGREE_PX`]
     /// along their normal, also in the mask.
-    fn matched(&self, pose: &Pose) -> usize {
+    fn matched(&self, pose: &Pose) -> Result<usize, PoseError> {
         let (g, params) = (&self.grads, self.params);
-        let depth = self.edges.depth(self.k, pose, g.width, g.height);
+        let depth = self
+            .edges
+            .depth(self.k, pose, g.width, g.height, &self.deadline)?;
         let near = IrlsParams {
             search_range: AGREE_PX,
             ..*params
         };
         let margin = params.mask_margin_px;
         let in_mask = |p: &Vector2<f64>| self.mask.as_ref().is_none_or(|m| m.within(p, margin));
-        self.edges
-            .samples(self.k, pose, &depth, params.sample_step)
+        Ok(self
+            .edges
+            .samples(self.k, pose, &depth, params.sample_step, &self.deadline)?
             .iter()
             .filter(|s| in_mask(&s.pixel))
             .filter(|s| {
@@ -531,7 +537,7 @@ impl Context<'_> {
                         .any(|&o| o.abs() <= AGREE_PX && in_mask(&(s.pixel + s.normal * o)))
                 })
             })
-            .count()
+            .count())
     }
 
     /// One outer iteration of `t`: fresh correspondences, then a few
@@ -541,7 +547,9 @@ impl Context<'_> {
         let (params, k) = (self.params, self.k);
         t.iterations += 1;
         let (width, height) = (self.grads.width, self.grads.height);
-        let depth = self.edges.depth(k, &t.pose, width, height);
+        let depth = self
+            .edges
+            .depth(k, &t.pose, width, height, &self.deadline)?;
         let range = range_at(params, t.iterations);
         let round = IrlsParams {
             search_range: range,
@@ -550,7 +558,7 @@ impl Context<'_> {
         let grow = growth(params, range);
         let matches: Vec<Match> = self
             .edges
-            .samples(k, &t.pose, &depth, params.sample_step)
+            .samples(k, &t.pose, &depth, params.sample_step, &self.deadline)?
             .into_iter()
             .filter_map(|s| {
                 let (found, n) = search(&self.grads, &s, &round)?;
@@ -713,6 +721,21 @@ pub fn refine(
     mask: Option<&Mask>,
     params: &IrlsParams,
 ) -> Result<PoseResult, PoseError> {
+    refine_until(img, edges, k, initial, mask, params, Deadline::NONE)
+}
+
+/// [`refine`] that gives up with [`PoseError::DeadlineExceeded`] once
+/// `deadline` has passed (looked at in every iteration, and inside the
+/// rasteriser and the edge sampler).
+pub fn refine_until(
+    img: &ColorImage,
+    edges: &EdgeModel,
+    k: &Intrinsics,
+    initial: &Pose,
+    mask: Option<&Mask>,
+    params: &IrlsParams,
+    deadline: Deadline,
+) -> Result<PoseResult, PoseError> {
     params.validate()?;
     k.validate()?;
     if let Some(m) = mask {
@@ -737,6 +760,7 @@ pub fn refine(
         anchors: edges
             .box_corners()
             .map(|c| k.project(&initial.transform(&c))),
+        deadline,
     };
     let new_track = |pose: Pose| Track {
         pose,
@@ -759,6 +783,9 @@ pub fn refine(
         .iter()
         .any(|t| !t.converged && t.iterations < params.max_iterations)
     {
+        if deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
         let stepped: Vec<Result<Track, PoseError>> = tracks
             .into_par_iter()
             .map(|mut t| {
@@ -787,8 +814,8 @@ pub fn refine(
     }
     let scored: Vec<(f64, Track)> = tracks
         .into_par_iter()
-        .map(|t| (ctx.score(&t.pose), t))
-        .collect();
+        .map(|t| Ok((ctx.score(&t.pose)?, t)))
+        .collect::<Result<_, PoseError>>()?;
     // The best; among equals the earlier start (the initial pose first).
     let mut best: Option<(f64, Track)> = None;
     for t in scored {
@@ -848,6 +875,30 @@ mod tests {
             .take(HYPOTHESES)
             .map(|&(v0, t)| t as f64 + subpixel(strength(t - 1), v0, strength(t + 1)))
             .collect()
+    }
+
+    #[test]
+    fn a_refinement_past_its_deadline_gives_up() {
+        let k = Intrinsics {
+            fx: 600.0,
+            fy: 600.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        let mesh = crate::pose::Mesh::cuboid(0.15, 0.1, 0.07);
+        let pose = Pose {
+            rotation: nalgebra::Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
+            translation: Vector3::new(0.0, 0.0, 0.5),
+        };
+        let bg = crate::pose::render::background(640, 480, 1).unwrap();
+        let sc = crate::pose::render::render(&mesh, &k, &pose, &bg, 0.0, 2.0, 1).unwrap();
+        let edges = EdgeModel::new(&mesh, 30.0);
+        let params = IrlsParams::default();
+        let past = Deadline::at(std::time::Instant::now());
+        let r = refine_until(&sc.image, &edges, &k, &pose, None, &params, past);
+        assert_eq!(r.unwrap_err(), PoseError::DeadlineExceeded);
+        let far = Deadline::at(std::time::Instant::now() + std::time::Duration::from_secs(600));
+        assert!(refine_until(&sc.image, &edges, &k, &pose, None, &params, far).is_ok());
     }
 
     #[test]

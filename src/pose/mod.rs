@@ -17,7 +17,7 @@ use thiserror::Error;
 
 pub use edges::EdgeModel;
 pub use geometry::{Intrinsics, Pose};
-pub use irls::{refine, IrlsParams, PoseResult};
+pub use irls::{refine, refine_until, IrlsParams, PoseResult};
 pub use mesh::Mesh;
 
 /// Errors of pose estimation.
@@ -37,4 +37,7 @@ pub enum PoseError {
         "model {0} detects nothing where the initial pose puts the object, so there is no mask"
     )]
     NotDetected(String),
+    /// The refinement passed its deadline and gave up.
+    #[error("the deadline passed during the pose refinement")]
+    DeadlineExceeded,
 }

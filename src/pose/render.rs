@@ -10,7 +10,7 @@ use super::mesh::Mesh;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::rng::SplitMix64;
-use crate::vision::VisionError;
+use crate::vision::{Deadline, VisionError};
 
 /// A rendered scene.
 pub struct PoseScene {
@@ -36,7 +36,17 @@ pub fn render(
     seed: u64,
 ) -> Result<PoseScene, VisionError> {
     let (w, h) = (background.width(), background.height());
-    let raster = rasterize(&mesh.vertices, &mesh.triangles, k, pose, w, h, false);
+    let raster = rasterize(
+        &mesh.vertices,
+        &mesh.triangles,
+        k,
+        pose,
+        w,
+        h,
+        false,
+        &Deadline::NONE,
+    )
+    .map_err(|_| VisionError::DeadlineExceeded)?;
     let light = Vector3::new(-0.4, -0.5, -0.77).normalize();
     let corners = corner_normals(mesh, SMOOTH_DEGREES);
     let cam: Vec<Vector3<f64>> = mesh.vertices.iter().map(|v| pose.transform(v)).collect();

@@ -29,7 +29,7 @@ use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
 use super::maxflow::Graph;
 use super::pyramid::{FeaturePyramid, Level};
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// Detection settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -48,6 +48,10 @@ pub struct DetectParams {
     /// Only boxes about here (a request's setting, never a model's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<Region>,
+    /// Give up (with [`VisionError::DeadlineExceeded`]) once this passes (a
+    /// request's setting, never stored).
+    #[serde(skip)]
+    pub deadline: Deadline,
 }
 
 /// Where the object is known to be roughly: a location is scanned only
@@ -71,6 +75,7 @@ impl Default for DetectParams {
             prune: true,
             refine: RefineParams::default(),
             region: None,
+            deadline: Deadline::NONE,
         }
     }
 }
@@ -1012,6 +1017,10 @@ impl<'a> Detector<'a> {
             return Ok((Vec::new(), DetectStats::default()));
         }
         let (solved, mut stats) = self.run(pyr, params, None, None, bounds);
+        // The scan stops early once the deadline passes.
+        if params.deadline.passed() {
+            return Err(VisionError::DeadlineExceeded);
+        }
         let t = Instant::now();
         let dets = self.suppress(pyr, solved, params);
         stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
@@ -1127,6 +1136,9 @@ impl<'a> Detector<'a> {
         let scanned: Vec<(usize, Vec<Candidate>)> = jobs
             .par_iter()
             .map(|&(l, v)| {
+                if params.deadline.passed() {
+                    return (0, Vec::new());
+                }
                 let map = maps.get(l).unwrap_or(&empty);
                 let level = &pyr.levels[l];
                 let b = pre.and_then(|b| b.get(l, v));
@@ -1173,7 +1185,7 @@ impl<'a> Detector<'a> {
             if (single || ranked) && block[0].bound - margin(block[0].bound) > best {
                 break;
             }
-            if budget.is_some_and(|b| stats.min_cuts >= b) {
+            if budget.is_some_and(|b| stats.min_cuts >= b) || params.deadline.passed() {
                 break;
             }
             let cutoff = best;

@@ -2,6 +2,7 @@
 //! SD-HOP energy and detection. Pure functions on plain data; this layer
 //! imports no async runtime, web framework or GPU API.
 
+pub mod deadline;
 pub mod detect;
 pub mod energy;
 pub mod hog;
@@ -13,6 +14,8 @@ pub mod rng;
 pub mod segment;
 
 use thiserror::Error;
+
+pub use deadline::Deadline;
 
 /// Errors of the vision layer.
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -27,4 +30,7 @@ pub enum VisionError {
     NonFinite(&'static str),
     #[error("invalid parameter: {0}")]
     InvalidParameter(String),
+    /// The computation passed its deadline and gave up.
+    #[error("the deadline passed during the computation")]
+    DeadlineExceeded,
 }

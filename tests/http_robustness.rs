@@ -1,0 +1,292 @@
+//! The service against clients that misbehave: pose requests whose work
+//! would have no bound (a huge focal length, an object on the camera
+//! centre), a computation cut at its deadline, stalled uploads
+//! (slow-loris) that must hold no place in the queue, too many connections
+//! from one client, and SIGTERM while a long computation runs. Every
+//! request ends within its deadline and the server stays ready.
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use nalgebra::{Rotation3, Vector3};
+use reqwest::header::CONTENT_TYPE;
+use reqwest::StatusCode;
+use sdhop::http::conn::ConnLimits;
+use sdhop::http::HttpConfig;
+use sdhop::infer::InferConfig;
+use sdhop::pose::render::{background, render};
+use sdhop::pose::{Intrinsics, Mesh, Pose};
+use serde_json::{json, Value};
+
+mod common;
+use common::*;
+
+const K: Intrinsics = Intrinsics {
+    fx: 600.0,
+    fy: 600.0,
+    cx: 320.0,
+    cy: 240.0,
+};
+
+/// A rendered box as PNG, its mesh as PLY and its pose.
+fn box_scene() -> (Vec<u8>, Mesh, Pose) {
+    let pose = Pose {
+        rotation: Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
+        translation: Vector3::new(0.01, -0.01, 0.5),
+    };
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let sc = render(
+        &mesh,
+        &K,
+        &pose,
+        &background(640, 480, 3).unwrap(),
+        0.0,
+        2.0,
+        5,
+    )
+    .unwrap();
+    let mut png = Vec::new();
+    sc.image
+        .to_rgb8()
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    (png, mesh, pose)
+}
+
+/// Sends a pose request; its status, body and how long it took.
+async fn pose(
+    server: &Server,
+    png: &[u8],
+    mesh: &[u8],
+    params: Value,
+    query: &str,
+) -> (u16, Value, Duration) {
+    use reqwest::multipart::{Form, Part};
+    let form = Form::new()
+        .part("image", Part::bytes(png.to_vec()).file_name("scene.png"))
+        .part("mesh", Part::bytes(mesh.to_vec()).file_name("object.ply"))
+        .text("params", params.to_string());
+    let t = Instant::now();
+    let r = reqwest::Client::new()
+        .post(server.url(&format!("/pose{query}")))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    let status = r.status().as_u16();
+    let body = r.json().await.unwrap_or(Value::Null);
+    (status, body, t.elapsed())
+}
+
+fn params(fx: f64, rotation: [[f64; 3]; 3], t: [f64; 3]) -> Value {
+    json!({
+        "intrinsics": {"fx": fx, "fy": fx, "cx": 320.0, "cy": 240.0},
+        "initial_pose": {"rotation": rotation, "translation": t},
+        "mask": "none"
+    })
+}
+
+/// The service still answers a detection and says it is ready.
+async fn still_serving(server: &Server) {
+    let c = reqwest::Client::new();
+    let r = c.get(server.url("/health/ready")).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK, "not ready afterwards");
+    let img = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
+    let r = c
+        .post(server.url("/detect?timeout_ms=10000"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(img)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK, "/detect fails afterwards");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pathological_poses_are_refused_or_cut_at_their_deadline() {
+    let server = Server::default().await;
+    let (png, mesh, truth) = box_scene();
+    let ply = mesh.to_ply(true);
+    let r = truth.rotation_rows();
+    // fx = fy = 1e12 projects the object to 1e11 pixels: 422 at once (it
+    // used to hold the worker for ever).
+    let (status, body, took) = pose(
+        &server,
+        &png,
+        &ply,
+        params(1e12, r, [0.0, 0.0, 1000.0]),
+        "?timeout_ms=3000",
+    )
+    .await;
+    assert_eq!(status, 422, "{body}");
+    assert!(took < Duration::from_secs(2), "{took:?}");
+    // The object on the camera centre: refused like one behind it.
+    let (status, body, _) = pose(&server, &png, &ply, params(600.0, r, [0.0, 0.0, 1e-6]), "").await;
+    assert_eq!(status, 422, "{body}");
+    assert!(body["error"].as_str().unwrap().contains("camera plane"));
+    // A tiny projection (a box 1e-6 wide at 0.5 m): nothing to fit.
+    let (status, body, _) = pose(
+        &server,
+        &png,
+        &Mesh::cuboid(1e-6, 1e-6, 1e-6).to_ply(true),
+        params(600.0, r, [0.0, 0.0, 0.5]),
+        "",
+    )
+    .await;
+    assert_eq!(status, 422, "{body}");
+    // Work that is allowed but dear (a dense mesh filling three image
+    // widths) with a short deadline: answered by the deadline, and the
+    // worker gives up rather than computing on.
+    let dense = Mesh::cuboid(0.15, 0.1, 0.07).subdivided(5).to_ply(true);
+    let (status, body, took) = pose(
+        &server,
+        &png,
+        &dense,
+        params(600.0, r, [0.0, 0.0, 0.12]),
+        "?timeout_ms=150",
+    )
+    .await;
+    assert!(matches!(status, 200 | 422 | 503), "{status} {body}");
+    assert!(took < Duration::from_millis(1500), "{took:?}");
+    still_serving(&server).await;
+    assert!(server.stop().await, "the drain did not finish");
+}
+
+/// A raw connection that sent the headers and the first bytes of a body
+/// of `length` bytes, and then stalls.
+fn stalled(addr: &str, path: &str, ctype: &str, length: usize) -> TcpStream {
+    let mut s = TcpStream::connect(addr).unwrap();
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: {length}\r\n\r\n"
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(b"\xff\xd8\xff").unwrap();
+    s
+}
+
+/// The status line a raw connection reads within `wait`.
+fn status_line(s: &mut TcpStream, wait: Duration) -> String {
+    s.set_read_timeout(Some(wait)).unwrap();
+    let mut buf = [0u8; 64];
+    let n = s.read(&mut buf).unwrap_or(0);
+    String::from_utf8_lossy(&buf[..n])
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_uploads_hold_no_place_in_the_queue() {
+    let server = Server::start(
+        InferConfig {
+            queue_size: 4,
+            ..InferConfig::default()
+        },
+        HttpConfig {
+            body_grace: Duration::from_secs(2),
+            ..HttpConfig::default()
+        },
+    )
+    .await;
+    let addr = server.base.trim_start_matches("http://").to_string();
+    // Ten times the queue: stalled /detect and /pose uploads.
+    let mut socks: Vec<TcpStream> = (0..30)
+        .map(|_| stalled(&addr, "/detect", "image/jpeg", 100_000))
+        .chain(
+            (0..10).map(|_| stalled(&addr, "/pose", "multipart/form-data; boundary=xyz", 100_000)),
+        )
+        .collect();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    // Others are served meanwhile.
+    still_serving(&server).await;
+    // The stalled uploads are cut off once the grace has passed: 408 and
+    // closed.
+    let started = Instant::now();
+    let lines = tokio::task::spawn_blocking(move || {
+        socks
+            .iter_mut()
+            .map(|s| status_line(s, Duration::from_secs(10)))
+            .collect::<Vec<_>>()
+    })
+    .await
+    .unwrap();
+    for line in &lines {
+        assert!(line.starts_with("HTTP/1.1 408"), "{line:?}");
+    }
+    assert!(started.elapsed() < Duration::from_secs(6));
+    still_serving(&server).await;
+    assert!(server.stop().await);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_over_the_per_client_limit_are_refused() {
+    let server = Server::start(
+        InferConfig::default(),
+        HttpConfig {
+            connections: ConnLimits {
+                max_total: 64,
+                max_per_client: 4,
+            },
+            ..HttpConfig::default()
+        },
+    )
+    .await;
+    let addr = server.base.trim_start_matches("http://").to_string();
+    let idle: Vec<TcpStream> = (0..4).map(|_| TcpStream::connect(&addr).unwrap()).collect();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let mut fifth = TcpStream::connect(&addr).unwrap();
+    fifth
+        .write_all(b"GET /health/live HTTP/1.1\r\nHost: x\r\n\r\n")
+        .unwrap();
+    let line = tokio::task::spawn_blocking(move || status_line(&mut fifth, Duration::from_secs(5)))
+        .await
+        .unwrap();
+    assert!(line.starts_with("HTTP/1.1 429"), "{line:?}");
+    // The places come back when the connections close.
+    drop(idle);
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let r = reqwest::get(server.url("/health/live")).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(server.stop().await);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_exits_within_the_grace_period_while_a_long_computation_runs() {
+    let (mut child, base) = spawn_binary(&["--grace-seconds", "2", "--max-batch", "1"]);
+    wait_ready(&base).await;
+    // A detection of a few seconds with a deadline far away.
+    let img = encode(&synthetic_scene(4, 4000, 3000), image::ImageFormat::Png);
+    let long = tokio::spawn(
+        reqwest::Client::new()
+            .post(format!("{base}/detect?timeout_ms=300000&threshold=-1000"))
+            .header(CONTENT_TYPE, "image/png")
+            .body(img)
+            .send(),
+    );
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(!long.is_finished(), "the computation must still run");
+    let sent = Instant::now();
+    assert!(Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap()
+        .success());
+    let status = tokio::task::spawn_blocking(move || child.wait().unwrap())
+        .await
+        .unwrap();
+    let took = sent.elapsed();
+    assert!(
+        took < Duration::from_millis(3500),
+        "exited {took:?} after SIGTERM with a 2 s grace period"
+    );
+    assert!(status.code().is_some(), "killed by a signal: {status:?}");
+    // The cut request saw its connection end, not a result.
+    let r = long.await.unwrap();
+    assert!(
+        r.map(|r| r.status() != StatusCode::OK).unwrap_or(true),
+        "the long computation finished within the grace period: make it longer"
+    );
+}
