@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use crate::model::Model;
 use crate::vision::detect::{detection_masks, DenseBounds, DetectStats, Detector, Region};
 use crate::vision::image::ColorImage;
-use crate::vision::mask::{Mask, Rle};
+use crate::vision::mask::{CompressedRle, Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
 use crate::vision::{Deadline, VisionError};
@@ -90,6 +90,35 @@ pub struct DetectionJson {
     /// Cell-level visible mask.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub raw_mask: Option<Rle>,
+}
+
+/// How the masks of the JSON are written.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RleFormat {
+    /// COCO uncompressed RLE: `counts` is an array of run lengths.
+    #[default]
+    Uncompressed,
+    /// COCO compressed RLE: `counts` is pycocotools' string.
+    Compressed,
+}
+
+impl DetectResponse {
+    /// The response as JSON with its masks in `format`.
+    pub fn to_json(&self, format: RleFormat) -> Result<serde_json::Value, serde_json::Error> {
+        let mut v = serde_json::to_value(self)?;
+        if format == RleFormat::Compressed {
+            let dets = v["detections"].as_array_mut().into_iter().flatten();
+            for (json, det) in dets.zip(&self.detections) {
+                for (key, rle) in [("mask", &det.mask), ("raw_mask", &det.raw_mask)] {
+                    if let Some(r) = rle {
+                        json[key] = serde_json::to_value::<CompressedRle>(r.compress())?;
+                    }
+                }
+            }
+        }
+        Ok(v)
+    }
 }
 
 /// Wall-clock milliseconds per stage, summed over pyramids and models

@@ -269,18 +269,17 @@ fn cli_refines_a_pose_with_a_given_mask_and_refuses_bad_meshes() {
 }
 
 /// The occlusion benchmark end to end on a few scenes over the CMU_KO8
-/// negatives (skipped where they are absent): the training set it writes
-/// is a COCO file the trainer reads, and the benchmark reports every
-/// method's six errors. Needs `../shared/data/cmu_ko8` (present in CI).
+/// negatives: the training set it writes is a COCO file the trainer reads,
+/// and the benchmark reports every method's six errors. Needs
+/// `../shared/data/cmu_ko8` (ignored by default; CI runs it with
+/// `--include-ignored`).
 #[test]
+#[ignore = "needs ../shared/data/cmu_ko8"]
 fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
     use std::process::Command;
     let negatives =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/cmu_ko8/negative");
-    if !negatives.is_dir() {
-        eprintln!("skipped: {} is not present", negatives.display());
-        return;
-    }
+    assert!(negatives.is_dir(), "needs {}", negatives.display());
     let dir = std::env::temp_dir().join(format!("sdhop-pose-bench-{}", std::process::id()));
     let bin = env!("CARGO_BIN_EXE_sdhop-train");
     let out = Command::new(bin)

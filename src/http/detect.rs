@@ -20,7 +20,7 @@ use super::image::{decode, IMAGE_TYPES};
 use super::state::AppState;
 use crate::infer::DetectTask;
 use crate::model::Model;
-use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, MaskMode};
+use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, MaskMode, RleFormat};
 use crate::vision::mask::Mask;
 use crate::vision::Deadline;
 
@@ -40,6 +40,7 @@ pub struct DetectQuery {
     pub max_detections: Option<usize>,
     pub masks: MaskMode,
     pub format: Option<Format>,
+    pub rle: RleFormat,
     pub timeout: Option<Duration>,
 }
 
@@ -57,6 +58,7 @@ impl DetectQuery {
             max_detections: None,
             masks: MaskMode::Refined,
             format: None,
+            rle: RleFormat::Uncompressed,
             timeout: None,
         };
         let bad = |k: &str, v: &str, why: &str| {
@@ -105,6 +107,13 @@ impl DetectQuery {
                         "png" => Format::Png,
                         _ => return Err(bad(&k, &v, "expected json or png")),
                     })
+                }
+                "rle" => {
+                    q.rle = match v.as_ref() {
+                        "uncompressed" => RleFormat::Uncompressed,
+                        "compressed" => RleFormat::Compressed,
+                        _ => return Err(bad(&k, &v, "expected uncompressed or compressed")),
+                    }
                 }
                 "timeout_ms" => q.timeout = Some(timeout_param(&v, max_timeout)?),
                 _ => return Err(bad(&k, &v, "unknown parameter")),
@@ -280,7 +289,11 @@ pub async fn detect(
     };
     let resp = state.infer.detect(permit, task, deadline).await?;
     match format {
-        Format::Json => Ok(Json(resp).into_response()),
+        Format::Json => Ok(Json(
+            resp.to_json(query.rle)
+                .map_err(|e| ApiError::Internal(format!("JSON: {e}")))?,
+        )
+        .into_response()),
         Format::Png => label_map_response(&resp),
     }
 }
