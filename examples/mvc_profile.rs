@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use sdhop::dataset::load_image;
+use sdhop::data::load_image;
 use sdhop::model::Model;
 use sdhop::train::ko8::Ko8Data;
 use sdhop::train::loss::{IntegralMask, LossKind, Truth, TruthLoss};

@@ -9,7 +9,7 @@
 
 use std::path::PathBuf;
 
-use sdhop::dataset::{ko8_visible_mask, load_image, load_mask};
+use sdhop::data::{ko8_visible_mask, load_image, load_mask};
 use sdhop::model::Model;
 use sdhop::train::ko8::Ko8Data;
 use sdhop::train::loss::{cell_truth, IntegralMask};

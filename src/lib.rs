@@ -8,7 +8,8 @@
 //! ground truth.
 
 pub mod backend;
-pub mod dataset;
+pub mod cli;
+pub mod data;
 pub mod eval;
 pub mod http;
 pub mod infer;

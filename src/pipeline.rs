@@ -93,7 +93,7 @@ pub struct DetectionJson {
 }
 
 /// How the masks of the JSON are written.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum RleFormat {
     /// COCO uncompressed RLE: `counts` is an array of run lengths.

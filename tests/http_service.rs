@@ -3,6 +3,11 @@
 //! bad inputs get the right 4xx; overload answers 503 with Retry-After;
 //! deadlines; PNG label maps; SIGTERM drains requests in flight; the JSON
 //! equals the CLI's. Models and images are generated (synthetic scenes).
+//!
+//! Why one file of about 1,300 lines: one test proves that every status
+//! of `openapi.yaml` is produced, so the cases of every endpoint live
+//! beside it; the misbehaving-client tests are `http_robustness.rs`, the
+//! shared helpers `common/mod.rs`.
 
 use std::collections::BTreeSet;
 use std::io::Cursor;

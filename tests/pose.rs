@@ -298,7 +298,7 @@ fn occlusion_benchmark_writes_training_data_and_scores_the_methods() {
         .unwrap();
     assert_succeeded(&out);
     for object in ["box", "bottle"] {
-        let loaded = sdhop::dataset::load_coco(&dir.join("coco.json"), &dir, object).unwrap();
+        let loaded = sdhop::data::load_coco(&dir.join("coco.json"), &dir, object).unwrap();
         assert!(loaded.skipped.is_empty(), "{:?}", loaded.skipped);
         let positives: Vec<_> = loaded
             .samples

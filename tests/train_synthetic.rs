@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use sdhop::dataset::{Annotation, Sample};
+use sdhop::data::{Annotation, Sample};
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{scene, Scene, SceneParams, SynthObject};

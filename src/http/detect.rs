@@ -289,6 +289,7 @@ pub async fn detect(
     };
     let resp = state.infer.detect(permit, task, deadline).await?;
     match format {
+        Format::Json if query.rle == RleFormat::Uncompressed => Ok(Json(resp).into_response()),
         Format::Json => Ok(Json(
             resp.to_json(query.rle)
                 .map_err(|e| ApiError::Internal(format!("JSON: {e}")))?,

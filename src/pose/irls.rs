@@ -9,6 +9,11 @@
 //! Gauss-Newton steps on the 6-d twist minimise the Tukey-weighted
 //! point-to-edge distances along the normals (robust scale by the median
 //! absolute deviation). It stops when the pose no longer changes.
+//!
+//! Why one file of about 970 lines: the edge search, the robust
+//! Gauss-Newton step, the restarts and their ranking share one `Context`
+//! (gradients, masks, the start pose) and are one algorithm; about 130
+//! lines are the tests beside them.
 
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 use rayon::prelude::*;

@@ -6,7 +6,6 @@
 //! or GPU API.
 
 pub mod api;
-pub mod bench;
 pub mod edges;
 pub mod geometry;
 pub mod irls;

@@ -12,7 +12,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::{progress_bar, train_model, PyramidCache, TrainError, TrainParams, TrainReport};
-use crate::dataset::{Ko8, Sample};
+use crate::data::{Ko8, Sample};
 use crate::eval::{mean_score, score_object, Evaluated, MeanScore, ObjectScore};
 use crate::model::Model;
 use crate::pipeline::{detect_pyramid, DetectOptions, DetectResponse, MaskMode};

@@ -13,6 +13,10 @@
 //! inner iterations search only those (exact over the cache) and a full
 //! search over everything runs only to find new constraints or to prove
 //! convergence.
+//!
+//! Why one file of about 950 lines: the cutting-plane loop, its working
+//! set and the QP hand-off are one algorithm whose state they share; the
+//! loss, the QP and the CMU_KO8 driver are already their own modules.
 
 pub mod ko8;
 pub mod loss;
@@ -28,7 +32,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::dataset::{load_image, DatasetError, Sample};
+use crate::data::{load_image, DatasetError, Sample};
 use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
 use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
 use crate::vision::energy::{joint_feature, joint_feature_len, PairwiseMode, ViewWeights};

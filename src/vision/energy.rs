@@ -6,6 +6,10 @@
 //! `sum_i F_i v_i + (B_i + R_i)(1 - v_i) + W * #(4-neighbour label changes)
 //!  + sum_c psi_c(S_c) + w_trunc * c(p) + bias`, where `psi_c` is the linear
 //! interpolation of `w_hop` at the normalised count `t_c = K S_c / M_c`.
+//!
+//! Why one file of about 880 lines: the energy, its joint feature vector,
+//! the graph construction and the bounds must agree term by term, and a
+//! third of the file is the tests that check them against brute force.
 
 use super::hog::{HOG_DIM, HOG_STRIDE, INSENSITIVE_BINS, SENSITIVE_BINS};
 use super::maxflow::Graph;

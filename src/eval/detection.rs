@@ -3,11 +3,9 @@
 //! (correct at box IoU >= 0.5, one match per image), per object and across
 //! objects, and the segmentation error of the top detection's mask.
 
-pub mod plot;
-
 use serde::{Deserialize, Serialize};
 
-use crate::dataset::Annotation;
+use crate::data::Annotation;
 use crate::pipeline::DetectionJson;
 use crate::vision::detect::box_iou;
 use crate::vision::mask::Mask;

@@ -1,0 +1,247 @@
+//! The feature stage on the GPU: the area resize of every pyramid level
+//! and the HOG maps (`kernels/resize_area.wgsl`, `kernels/hog.wgsl`) of a
+//! batch of images in one submission.
+
+use super::*;
+
+/// One pyramid level in the layout the kernels read (`struct Level`).
+#[derive(Clone, Copy, Default)]
+pub(super) struct LevelDesc {
+    pub(super) src_w: u32,
+    pub(super) src_h: u32,
+    pub(super) src_off: u32,
+    pub(super) dst_w: u32,
+    pub(super) dst_h: u32,
+    pub(super) dst_off: u32,
+    pub(super) tmp_off: u32,
+    pub(super) xtap_off: u32,
+    pub(super) ytap_off: u32,
+    pub(super) cw: u32,
+    pub(super) ch: u32,
+    pub(super) hist_off: u32,
+    pub(super) hog_off: u32,
+    pub(super) grad_off: u32,
+}
+
+impl LevelDesc {
+    fn words(&self) -> [u32; 16] {
+        [
+            self.src_w,
+            self.src_h,
+            self.src_off,
+            self.dst_w,
+            self.dst_h,
+            self.dst_off,
+            self.tmp_off,
+            self.xtap_off,
+            self.ytap_off,
+            self.cw,
+            self.ch,
+            self.hist_off,
+            self.hog_off,
+            self.grad_off,
+            0,
+            0,
+        ]
+    }
+}
+
+/// The levels a pyramid has: `(width, height)` of each, as
+/// [`FeaturePyramid::build`] chooses them.
+pub(super) fn level_sizes(w: usize, h: usize, p: &PyramidParams) -> Vec<(usize, usize)> {
+    p.scales()
+        .into_iter()
+        .filter_map(|s| {
+            let lw = (w as f64 * s).round() as usize;
+            let lh = (h as f64 * s).round() as usize;
+            (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
+        })
+        .collect()
+}
+
+pub(super) fn push_taps(taps: &mut Vec<u32>, table: &[Vec<(usize, f32)>]) -> Result<u32, GpuError> {
+    let off = to_u32(taps.len(), "taps")?;
+    let n = table.len();
+    let mut at = n + 1;
+    taps.push(to_u32(at, "taps")?);
+    for t in table {
+        at += 2 * t.len();
+        taps.push(to_u32(at, "taps")?);
+    }
+    for t in table {
+        for &(i, w) in t {
+            taps.push(to_u32(i, "tap index")?);
+            taps.push(w.to_bits());
+        }
+    }
+    Ok(off)
+}
+
+/// The HOG maps (and optionally the resized images) of every level of every
+/// (image, setting) pair, in the order asked.
+pub(super) struct Features {
+    pub(super) hogs: Vec<Vec<HogMap>>,
+    pub(super) images: Vec<Vec<ColorImage>>,
+}
+
+impl Context {
+    /// HOG maps of every level of every `(image, pyramid settings)` pair in
+    /// one submission; with `images`, also the resized level images.
+    pub(super) fn features(
+        &mut self,
+        work: &[(&ColorImage, PyramidParams)],
+        images: bool,
+    ) -> Result<Features, GpuError> {
+        let mut src: Vec<f32> = Vec::new();
+        let mut taps: Vec<u32> = Vec::new();
+        let mut descs: Vec<LevelDesc> = Vec::new();
+        let mut owner: Vec<usize> = Vec::new();
+        let (mut tmp_n, mut dst_n, mut grad_n, mut hist_n, mut hog_n) = (0, 0, 0, 0, 0);
+        let mut src_offs: Vec<(usize, usize)> = Vec::new();
+        for (k, (img, p)) in work.iter().enumerate() {
+            // One copy of each image, shared by its settings.
+            let src_off = match src_offs
+                .iter()
+                .find(|(ptr, _)| *ptr == *img as *const _ as usize)
+            {
+                Some(&(_, off)) => off,
+                None => {
+                    let off = src.len();
+                    src.extend_from_slice(img.data());
+                    src_offs.push((*img as *const _ as usize, off));
+                    off
+                }
+            };
+            let (w, h) = (img.width(), img.height());
+            for (lw, lh) in level_sizes(w, h, p) {
+                let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
+                let d = LevelDesc {
+                    src_w: to_u32(w, "width")?,
+                    src_h: to_u32(h, "height")?,
+                    src_off: to_u32(src_off, "image offset")?,
+                    dst_w: to_u32(lw, "level width")?,
+                    dst_h: to_u32(lh, "level height")?,
+                    dst_off: to_u32(dst_n, "level offset")?,
+                    tmp_off: to_u32(tmp_n, "resize offset")?,
+                    xtap_off: push_taps(&mut taps, &area_weights(w, lw))?,
+                    ytap_off: push_taps(&mut taps, &area_weights(h, lh))?,
+                    cw: to_u32(cw, "cells")?,
+                    ch: to_u32(ch, "cells")?,
+                    hist_off: to_u32(hist_n, "histogram offset")?,
+                    hog_off: to_u32(hog_n, "feature offset")?,
+                    grad_off: to_u32(grad_n, "gradient offset")?,
+                };
+                tmp_n += h * lw * 3;
+                dst_n += lw * lh * 3;
+                grad_n += lw * lh;
+                hist_n += cw * ch * 18;
+                hog_n += cw * ch * HOG_STRIDE;
+                descs.push(d);
+                owner.push(k);
+            }
+        }
+        let mut hogs: Vec<Vec<HogMap>> = vec![Vec::new(); work.len()];
+        let mut imgs: Vec<Vec<ColorImage>> = vec![Vec::new(); work.len()];
+        if descs.is_empty() {
+            return Ok(Features { hogs, images: imgs });
+        }
+        let words: Vec<u32> = descs.iter().flat_map(|d| d.words()).collect();
+        let levels_buf = self.upload("levels", &words)?;
+        let taps_buf = self.upload("taps", &taps)?;
+        let src_buf = self.upload("image", &src)?;
+        let tmp_buf = self.scratch("resize", tmp_n * 4)?;
+        let dst_buf = self.scratch("level images", dst_n * 4)?;
+        let grad_buf = self.scratch("gradients", grad_n * 8)?;
+        let hist_buf = self.scratch("histograms", hist_n * 4)?;
+        let hog_buf = self.scratch("features", hog_n * 4)?;
+        let staging = self.readback(hog_n + if images { dst_n } else { 0 })?;
+        let k = &self.kernels;
+        let bg_rh = self.bind(
+            &k.resize_h,
+            &[
+                (0, &levels_buf),
+                (1, &taps_buf),
+                (2, &src_buf),
+                (3, &tmp_buf),
+            ],
+        );
+        let bg_rv = self.bind(
+            &k.resize_v,
+            &[
+                (0, &levels_buf),
+                (1, &taps_buf),
+                (3, &tmp_buf),
+                (4, &dst_buf),
+            ],
+        );
+        let bg_g = self.bind(
+            &k.gradient,
+            &[(0, &levels_buf), (1, &dst_buf), (2, &grad_buf)],
+        );
+        let bg_h = self.bind(
+            &k.histogram,
+            &[(0, &levels_buf), (2, &grad_buf), (3, &hist_buf)],
+        );
+        let bg_n = self.bind(
+            &k.normalise,
+            &[(0, &levels_buf), (3, &hist_buf), (4, &hog_buf)],
+        );
+        let max = |f: fn(&LevelDesc) -> u32| descs.iter().map(f).max().unwrap_or(1) as usize;
+        let nl = to_u32(descs.len(), "levels")?;
+        if nl > MAX_GROUPS {
+            return Err(GpuError::TooLarge(format!("{nl} levels in one batch")));
+        }
+        let (gw, gsh) = (groups(max(|d| d.dst_w), 8)?, groups(max(|d| d.src_h), 8)?);
+        let gh = groups(max(|d| d.dst_h), 8)?;
+        let (gcw, gch) = (groups(max(|d| d.cw), 8)?, groups(max(|d| d.ch), 8)?);
+        let pipes = [
+            (&k.resize_h, &bg_rh, (gw, gsh)),
+            (&k.resize_v, &bg_rv, (gw, gh)),
+            (&k.gradient, &bg_g, (gw, gh)),
+            (&k.histogram, &bg_h, (gcw, gch)),
+            (&k.normalise, &bg_n, (gcw, gch)),
+        ];
+        let record = |enc: &mut wgpu::CommandEncoder| {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("pyramid"),
+                timestamp_writes: None,
+            });
+            for (p, bg, (x, y)) in pipes {
+                pass.set_pipeline(p);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(x, y, nl);
+            }
+        };
+        let reads: Vec<(&wgpu::Buffer, usize)> = if images {
+            vec![(&hog_buf, hog_n), (&dst_buf, dst_n)]
+        } else {
+            vec![(&hog_buf, hog_n)]
+        };
+        let mut out = self.submit_and_read(&staging, record, &reads)?;
+        let level_images = if images { out.pop() } else { None };
+        let feats = out.pop().unwrap_or_default();
+        for (d, &k) in descs.iter().zip(&owner) {
+            let (cw, ch) = (d.cw as usize, d.ch as usize);
+            let o = d.hog_off as usize;
+            let raw = feats
+                .get(o..o + cw * ch * HOG_STRIDE)
+                .ok_or_else(|| GpuError::Validation("short read of the features".into()))?
+                .to_vec();
+            hogs[k].push(
+                HogMap::from_raw(cw, ch, raw).map_err(|e| GpuError::Validation(e.to_string()))?,
+            );
+            if let Some(li) = &level_images {
+                let (lw, lh) = (d.dst_w as usize, d.dst_h as usize);
+                let o = d.dst_off as usize;
+                let px = li
+                    .get(o..o + lw * lh * 3)
+                    .ok_or_else(|| GpuError::Validation("short read of the levels".into()))?
+                    .to_vec();
+                imgs[k].push(
+                    ColorImage::new(lw, lh, px).map_err(|e| GpuError::Validation(e.to_string()))?,
+                );
+            }
+        }
+        Ok(Features { hogs, images: imgs })
+    }
+}

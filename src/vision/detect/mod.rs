@@ -1,0 +1,656 @@
+//! SD-HOP detection: an exact min-cut at every viewpoint and pyramid location
+//! that can still matter, non-maximum suppression, and masks.
+//!
+//! Exact pruning works in three stages, each a lower bound on a location's
+//! energy that skips the location once it exceeds the cut-off (the score
+//! threshold, or the worst of the `max_detections` best detections found so
+//! far, since locations are visited in order of their bound):
+//! 1. one dense pass per level and viewpoint computes every location's sum
+//!    of best unaries `sum_i min(F_i, B_i + R_i)`, plus the smallest clique
+//!    potential times an upper bound on the number of cliques in the box
+//!    (`CliqueCounter`, O(1) per box);
+//! 2. at the survivors, the exact minimum of the energy without its pairwise
+//!    term (cliques are then independent; [`BoxProblem::lower_bound_without_pairwise`]);
+//! 3. the min-cut itself stops as soon as the flow it has found shows the
+//!    minimum above the cut-off ([`BoxProblem::solve_below`]).
+//!
+//! All three are exact: the detections equal those of solving every
+//! location, which a test checks.
+//!
+//! This file holds the search (visiting locations in order of their
+//! bound, branch and bound on the cut-off, suppression); `bounds` the
+//! stage-1 bounds, `location` one location's CRF, its stage-2 bounds and
+//! its min-cut. The masks of a detection are drawn by [`detection_masks`]
+//! with [`super::mask`].
+
+mod bounds;
+mod location;
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::energy::{
+    edge_direction, BoxProblem, PairwiseMode, ViewWeights, NO_CLIQUE, PAIR_DOWN, PAIR_RIGHT,
+};
+use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
+use super::maxflow::Graph;
+use super::pyramid::{FeaturePyramid, Level};
+use super::{Deadline, VisionError};
+pub use bounds::{
+    chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
+};
+use bounds::{overlap, positions, CliqueCounter, PlanarMap};
+
+/// Detection settings.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DetectParams {
+    /// Keep detections whose score (minus the energy) is at least this.
+    pub threshold: f64,
+    /// At most this many detections after non-maximum suppression.
+    pub max_detections: usize,
+    /// Suppress a detection whose box IoU with a better one exceeds this.
+    pub nms_iou: f64,
+    /// Largest fraction of a box's cells that may lie outside the image.
+    pub max_truncation: f64,
+    /// Skip locations whose bound shows they cannot matter.
+    pub prune: bool,
+    pub refine: RefineParams,
+    /// Only boxes about here (a request's setting, never a model's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub region: Option<Region>,
+    /// Give up (with [`VisionError::DeadlineExceeded`]) once this passes (a
+    /// request's setting, never stored).
+    #[serde(skip)]
+    pub deadline: Deadline,
+}
+
+/// Where the object is known to be roughly: a location is scanned only
+/// when its (full-object) box overlaps `bbox` by an IoU of at least
+/// `min_iou`. With one detection asked for, the exact pruning then solves
+/// far fewer locations.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Region {
+    /// `(x, y, width, height)` in pixels.
+    pub bbox: (f64, f64, f64, f64),
+    pub min_iou: f64,
+}
+
+impl Default for DetectParams {
+    fn default() -> Self {
+        Self {
+            threshold: 0.0,
+            max_detections: 10,
+            nms_iou: 0.4,
+            max_truncation: 0.5,
+            prune: true,
+            refine: RefineParams::default(),
+            region: None,
+            deadline: Deadline::NONE,
+        }
+    }
+}
+
+impl DetectParams {
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let ok = !self.threshold.is_nan()
+            && (0.0..=1.0).contains(&self.nms_iou)
+            && (0.0..1.0).contains(&self.max_truncation)
+            && self.refine.fill.is_finite()
+            && self.refine.clear.is_finite()
+            && self.region.is_none_or(|r| {
+                let (x, y, w, h) = r.bbox;
+                x.is_finite()
+                    && y.is_finite()
+                    && w > 0.0
+                    && h > 0.0
+                    && w.is_finite()
+                    && h.is_finite()
+                    && (0.0..=1.0).contains(&r.min_iou)
+            });
+        if ok {
+            Ok(())
+        } else {
+            Err(VisionError::InvalidParameter(format!(
+                "detection needs a threshold, 0 <= nms_iou <= 1 and 0 <= max_truncation < 1, got {self:?}"
+            )))
+        }
+    }
+}
+
+/// One detection.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Detection {
+    pub viewpoint: usize,
+    pub level: usize,
+    /// Score: minus the energy; higher is better.
+    pub score: f64,
+    /// Full-extent box in image pixels `(x, y, width, height)`.
+    pub bbox: (f64, f64, f64, f64),
+    /// Box geometry on its level.
+    pub grid: CellGrid,
+    /// Visibility of the box cells, row-major.
+    pub cells: Vec<bool>,
+    /// Whether the box extends beyond the image.
+    pub truncated: bool,
+    /// Fraction of the box cells labelled visible.
+    pub visible_fraction: f64,
+}
+
+/// Counts and per-stage wall-clock times of one scan.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct DetectStats {
+    pub locations: usize,
+    pub pruned_stage1: usize,
+    /// Skipped by the clique bound or the best energy found so far.
+    pub pruned_stage2: usize,
+    pub min_cuts: usize,
+    pub responses_ms: f64,
+    pub mincut_ms: f64,
+    pub nms_ms: f64,
+}
+
+impl DetectStats {
+    /// Fraction of locations that never reached a min-cut.
+    pub fn pruned_fraction(&self) -> f64 {
+        if self.locations == 0 {
+            0.0
+        } else {
+            1.0 - self.min_cuts as f64 / self.locations as f64
+        }
+    }
+}
+
+/// A viewpoint prepared for scanning.
+struct View<'a> {
+    w: &'a ViewWeights,
+    /// `min(w_0, w_K)`, the smallest value of any clique potential.
+    hop_min: f64,
+    w_hop: Vec<f64>,
+}
+
+/// A box location: a viewpoint's template placed with its top-left cell at
+/// `(x, y)` on a pyramid level (negative or past the edge when truncated).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Location {
+    pub level: usize,
+    pub view: usize,
+    pub y: isize,
+    pub x: isize,
+}
+
+/// A scanned location that survived stage 1.
+#[derive(Clone, Copy, Debug)]
+struct Candidate {
+    view: usize,
+    level: usize,
+    x: isize,
+    y: isize,
+    bound: f64,
+}
+
+impl Candidate {
+    fn location(&self) -> Location {
+        Location {
+            level: self.level,
+            view: self.view,
+            y: self.y,
+            x: self.x,
+        }
+    }
+}
+
+/// A loss `Delta(y, y_hat)` that decomposes over a box's cells, for
+/// loss-augmented inference (paper section 2.3): at every location it adds a
+/// constant and per-cell Hamming terms to the energy, so the same min-cut
+/// finds `argmin_y_hat E(y_hat) - Delta(y, y_hat)`.
+pub trait LossAugment: Sync {
+    /// An upper bound on the loss of any output (subtracted from bounds).
+    fn max_loss(&self) -> f64;
+    /// Subtracts the loss of the box at `grid` from `problem`'s energy.
+    fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem);
+}
+
+/// The output of loss-augmented inference at one location.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Augmented {
+    pub location: Location,
+    pub cells: Vec<bool>,
+    /// `Delta - E` of this output: the larger, the more violated.
+    pub value: f64,
+}
+
+struct Solved {
+    cand: Candidate,
+    energy: f64,
+    cells: Vec<bool>,
+}
+
+/// Per-thread buffers reused between locations.
+#[derive(Default)]
+struct Scratch {
+    graph: Graph,
+    problem: BoxProblem,
+    labels: Vec<bool>,
+    seg_stamp: Vec<u32>,
+    seg_local: Vec<u32>,
+    generation: u32,
+    edge_dirs: Vec<u8>,
+}
+
+/// A margin that absorbs float round-off between the bound and the energy.
+#[inline]
+fn margin(v: f64) -> f64 {
+    1e-4 * (1.0 + v.abs())
+}
+
+/// An SD-HOP detector over the viewpoints of one model.
+pub struct Detector<'a> {
+    views: Vec<View<'a>>,
+}
+
+impl<'a> Detector<'a> {
+    /// Prepares the viewpoints; checks them first.
+    pub fn new(views: &'a [ViewWeights]) -> Result<Self, VisionError> {
+        if views.is_empty() {
+            return Err(VisionError::InvalidParameter(
+                "a model needs a viewpoint".into(),
+            ));
+        }
+        let views = views
+            .iter()
+            .map(|w| {
+                w.validate()?;
+                let w_hop: Vec<f64> = w.w_hop.iter().map(|&v| f64::from(v)).collect();
+                let hop_min = w_hop[0].min(w_hop[w_hop.len() - 1]);
+                Ok(View { w, hop_min, w_hop })
+            })
+            .collect::<Result<Vec<_>, VisionError>>()?;
+        Ok(Self { views })
+    }
+
+    /// Scans a pyramid. Returns the detections (best first) and statistics.
+    pub fn detect(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+    ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
+        self.detect_with_bounds(pyr, params, None)
+    }
+
+    /// [`Self::detect`] with the stage-1 chain bounds computed elsewhere (by
+    /// a compute backend; see [`dense_bounds`]). Levels and viewpoints whose
+    /// bounds are missing or cover other positions are computed here.
+    pub fn detect_with_bounds(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        bounds: Option<&DenseBounds>,
+    ) -> Result<(Vec<Detection>, DetectStats), VisionError> {
+        params.validate()?;
+        if params.max_detections == 0 {
+            return Ok((Vec::new(), DetectStats::default()));
+        }
+        let (solved, mut stats) = self.run(pyr, params, None, None, bounds);
+        // The scan stops early once the deadline passes.
+        if params.deadline.passed() {
+            return Err(VisionError::DeadlineExceeded);
+        }
+        let t = Instant::now();
+        let dets = self.suppress(pyr, solved, params);
+        stats.nms_ms = t.elapsed().as_secs_f64() * 1e3;
+        Ok((dets, stats))
+    }
+
+    /// Loss-augmented inference over every location, level and viewpoint:
+    /// the output maximising `Delta - E`, if any beats `floor` (the value of
+    /// the empty output). Exact: pruned locations provably cannot beat the
+    /// best value found. Also returns every location found on the way that
+    /// beat the best value known when it was solved (hard examples).
+    /// With a `budget`, the search stops after about that many min-cuts
+    /// (in order of the bound) and is no longer exact.
+    pub fn most_violated(
+        &self,
+        pyr: &FeaturePyramid,
+        aug: &dyn LossAugment,
+        floor: f64,
+        max_truncation: f64,
+        budget: Option<usize>,
+    ) -> Result<(Option<Augmented>, Vec<Location>, DetectStats), VisionError> {
+        let params = DetectParams {
+            threshold: floor,
+            max_detections: 1,
+            max_truncation,
+            prune: true,
+            ..DetectParams::default()
+        };
+        params.validate()?;
+        let (solved, stats) = self.run(pyr, &params, Some(aug), budget, None);
+        let found: Vec<Location> = solved.iter().map(|s| s.cand.location()).collect();
+        let best = solved
+            .into_iter()
+            .min_by(|a, b| a.energy.total_cmp(&b.energy))
+            .map(|s| Augmented {
+                location: s.cand.location(),
+                value: -s.energy,
+                cells: s.cells,
+            });
+        Ok((best, found, stats))
+    }
+
+    /// Loss-augmented inference restricted to the given locations.
+    pub fn most_violated_among(
+        &self,
+        pyr: &FeaturePyramid,
+        locations: &[Location],
+        aug: &dyn LossAugment,
+        floor: f64,
+    ) -> Option<Augmented> {
+        let mut s = Scratch::default();
+        let mut best: Option<Augmented> = None;
+        let mut cut = -floor;
+        for loc in locations {
+            let cand = Candidate {
+                view: loc.view,
+                level: loc.level,
+                x: loc.x,
+                y: loc.y,
+                bound: f64::NEG_INFINITY,
+            };
+            if let Some(r) = self.solve(pyr, &cand, cut, true, Some(aug), &mut s) {
+                if r.energy < cut {
+                    cut = r.energy;
+                    best = Some(Augmented {
+                        location: *loc,
+                        value: -r.energy,
+                        cells: r.cells,
+                    });
+                }
+            }
+        }
+        best
+    }
+
+    /// Both stages and the min-cuts; the solved locations with energy at
+    /// most `-threshold` (for a single best detection, only those that were
+    /// the best when found).
+    fn run(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        aug: Option<&dyn LossAugment>,
+        budget: Option<usize>,
+        pre: Option<&DenseBounds>,
+    ) -> (Vec<Solved>, DetectStats) {
+        let mut stats = DetectStats::default();
+        let max_loss = aug.map_or(0.0, |a| a.max_loss());
+        let cut = -params.threshold;
+        let t = Instant::now();
+        let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
+        let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
+        let maps: Vec<PlanarMap> = if params.prune && pre.is_none() {
+            pyr.levels
+                .par_iter()
+                .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let counters: Vec<CliqueCounter> = if params.prune {
+            pyr.levels
+                .par_iter()
+                .map(|l| CliqueCounter::new(&l.cell_segments, l.hog.width(), l.hog.height()))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let empty = PlanarMap::new(&HogMap::zeros(0, 0), 0, 0);
+        let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
+            .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
+            .collect();
+        let scanned: Vec<(usize, Vec<Candidate>)> = jobs
+            .par_iter()
+            .map(|&(l, v)| {
+                if params.deadline.passed() {
+                    return (0, Vec::new());
+                }
+                let map = maps.get(l).unwrap_or(&empty);
+                let level = &pyr.levels[l];
+                let b = pre.and_then(|b| b.get(l, v));
+                self.scan_level(l, level, map, counters.get(l), v, params, cut, max_loss, b)
+            })
+            .collect();
+        let mut cands: Vec<Candidate> = Vec::new();
+        for (count, c) in scanned {
+            stats.locations += count;
+            cands.extend(c);
+        }
+        if let Some(r) = params.region {
+            cands.retain(|c| {
+                box_iou(self.grid(pyr, &c.location()).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
+            });
+        }
+        stats.pruned_stage1 = stats.locations - cands.len();
+        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
+        // Visit in order of the bound (ties in a fixed order).
+        cands.sort_by(|a, b| {
+            a.bound
+                .total_cmp(&b.bound)
+                .then((a.level, a.view, a.y, a.x).cmp(&(b.level, b.view, b.y, b.x)))
+        });
+
+        let t = Instant::now();
+        // Branch and bound: locations are visited in order of their bound,
+        // and once `max_detections` detections survive non-maximum
+        // suppression among those solved, the worst of them is the cut-off:
+        // a location whose bound is above it ranks after all of them in the
+        // greedy suppression, so it can never be reported.
+        let single = params.max_detections == 1 && params.prune;
+        let ranked = params.prune && budget.is_none();
+        let mut solved: Vec<Solved> = Vec::new();
+        let mut best = cut;
+        let chunk = if single {
+            64
+        } else if ranked {
+            256
+        } else {
+            cands.len().max(1)
+        };
+        for block in cands.chunks(chunk) {
+            if (single || ranked) && block[0].bound - margin(block[0].bound) > best {
+                break;
+            }
+            if budget.is_some_and(|b| stats.min_cuts >= b) || params.deadline.passed() {
+                break;
+            }
+            let cutoff = best;
+            let out: Vec<Option<Solved>> = block
+                .par_iter()
+                .map_init(Scratch::default, |s, c| {
+                    if (single || ranked) && c.bound - margin(c.bound) > cutoff {
+                        return None;
+                    }
+                    self.solve(pyr, c, cutoff, params.prune, aug, s)
+                })
+                .collect();
+            for r in out.into_iter().flatten() {
+                stats.min_cuts += 1;
+                if r.energy <= cut {
+                    if single {
+                        best = best.min(r.energy);
+                    }
+                    solved.push(r);
+                }
+            }
+            if ranked && !single && solved.len() >= params.max_detections {
+                if let Some(e) = self.kth_energy(pyr, &mut solved, params) {
+                    best = best.min(e);
+                }
+            }
+        }
+        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
+        stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
+        (solved, stats)
+    }
+
+    /// The energy of the last of `max_detections` detections that survive
+    /// greedy non-maximum suppression among `solved` (sorted in place), if
+    /// that many survive.
+    fn kth_energy(
+        &self,
+        pyr: &FeaturePyramid,
+        solved: &mut [Solved],
+        params: &DetectParams,
+    ) -> Option<f64> {
+        sort_solved(solved);
+        let mut kept: Vec<(f64, f64, f64, f64)> = Vec::new();
+        for s in solved.iter() {
+            let b = self.grid(pyr, &s.cand.location()).pixel_box();
+            if kept.iter().any(|k| box_iou(*k, b) > params.nms_iou) {
+                continue;
+            }
+            kept.push(b);
+            if kept.len() == params.max_detections {
+                return Some(s.energy);
+            }
+        }
+        None
+    }
+
+    /// Sorts by score (ties in a fixed order), converts to image boxes and
+    /// applies greedy non-maximum suppression.
+    fn suppress(
+        &self,
+        pyr: &FeaturePyramid,
+        mut solved: Vec<Solved>,
+        params: &DetectParams,
+    ) -> Vec<Detection> {
+        sort_solved(&mut solved);
+        let mut out: Vec<Detection> = Vec::new();
+        for s in solved {
+            if out.len() >= params.max_detections {
+                break;
+            }
+            let view = &self.views[s.cand.view];
+            let level = &pyr.levels[s.cand.level];
+            let grid = self.grid(pyr, &s.cand.location());
+            let bbox = grid.pixel_box();
+            if out.iter().any(|d| box_iou(d.bbox, bbox) > params.nms_iou) {
+                continue;
+            }
+            let (mw, mh) = (level.hog.width(), level.hog.height());
+            let truncated = s.cand.x < 0
+                || s.cand.y < 0
+                || s.cand.x + view.w.cols as isize > mw as isize
+                || s.cand.y + view.w.rows as isize > mh as isize;
+            let visible = s.cells.iter().filter(|&&v| v).count();
+            out.push(Detection {
+                viewpoint: s.cand.view,
+                level: s.cand.level,
+                score: -s.energy,
+                bbox,
+                grid,
+                visible_fraction: visible as f64 / s.cells.len() as f64,
+                cells: s.cells,
+                truncated,
+            });
+        }
+        out
+    }
+}
+
+/// Best energy first, ties in a fixed order.
+fn sort_solved(solved: &mut [Solved]) {
+    solved.sort_by(|a, b| {
+        a.energy
+            .total_cmp(&b.energy)
+            .then(a.cand.location().cmp(&b.cand.location()))
+    });
+}
+
+/// IoU of two boxes `(x, y, w, h)`.
+pub fn box_iou(a: (f64, f64, f64, f64), b: (f64, f64, f64, f64)) -> f64 {
+    let ix = (a.0 + a.2).min(b.0 + b.2) - a.0.max(b.0);
+    let iy = (a.1 + a.3).min(b.1 + b.3) - a.1.max(b.1);
+    if ix <= 0.0 || iy <= 0.0 {
+        return 0.0;
+    }
+    let inter = ix * iy;
+    inter / (a.2 * a.3 + b.2 * b.3 - inter)
+}
+
+/// The raw and refined pixel masks of a detection.
+pub fn detection_masks(
+    det: &Detection,
+    pyr: &FeaturePyramid,
+    refine: &RefineParams,
+) -> (Mask, Mask) {
+    let raw = raw_mask(&det.grid, &det.cells, pyr.image_width, pyr.image_height);
+    let refined = refine_mask(&raw, &det.grid, &pyr.segmentation, refine);
+    (raw, refined)
+}
+
+#[cfg(test)]
+#[allow(clippy::needless_range_loop)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn iou_of_boxes() {
+        assert_eq!(box_iou((0.0, 0.0, 2.0, 2.0), (2.0, 0.0, 2.0, 2.0)), 0.0);
+        assert!((box_iou((0.0, 0.0, 2.0, 2.0), (1.0, 0.0, 2.0, 2.0)) - 1.0 / 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn clique_counter_bounds_distinct_segments() {
+        let mut rng = crate::vision::rng::SplitMix64::new(5);
+        for t in 0..300 {
+            let (w, h) = (1 + t % 9, 1 + (t / 9) % 7);
+            let labels = 1 + rng.range_usize(0, 6);
+            let seg: Vec<u32> = (0..w * h)
+                .map(|_| rng.range_usize(0, labels) as u32)
+                .collect();
+            let c = CliqueCounter::new(&seg, w, h);
+            for x0 in 0..w {
+                for x1 in x0 + 1..=w {
+                    for y0 in 0..h {
+                        for y1 in y0 + 1..=h {
+                            let mut seen: Vec<u32> = (y0..y1)
+                                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                                .map(|(x, y)| seg[y * w + x])
+                                .collect();
+                            seen.sort_unstable();
+                            seen.dedup();
+                            let b = c.bound(x0, x1, y0, y1);
+                            assert!(b >= seen.len(), "{seg:?} {w}x{h} [{x0},{x1})x[{y0},{y1})");
+                            assert!(b <= (x1 - x0) * (y1 - y0));
+                        }
+                    }
+                }
+            }
+        }
+        // One segment: exactly one clique; a checkerboard: every cell.
+        let c = CliqueCounter::new(&[3; 12], 4, 3);
+        assert_eq!(c.bound(0, 4, 0, 3), 1);
+        let board: Vec<u32> = (0..12).map(|i| ((i % 4 + i / 4) % 2) as u32).collect();
+        assert_eq!(CliqueCounter::new(&board, 4, 3).bound(1, 4, 0, 3), 9);
+    }
+
+    #[test]
+    fn positions_keep_enough_cells_inside() {
+        let (lo, hi) = positions(10, 4, 2);
+        assert_eq!((lo, hi), (-2, 8));
+        assert_eq!(overlap(-2, 4, 10), 2);
+        assert_eq!(overlap(8, 4, 10), 2);
+    }
+
+    #[test]
+    fn dot_matches_plain_sum() {
+        let a: Vec<f32> = (0..77).map(|i| i as f32 * 0.1).collect();
+        let b: Vec<f32> = (0..77).map(|i| 1.0 - i as f32 * 0.01).collect();
+        let plain: f32 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+        assert!((dot(&a, &b) - plain).abs() < 1e-3);
+    }
+}
