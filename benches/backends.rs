@@ -36,6 +36,7 @@ fn run_batch(
         .map(|image| FeatureJob {
             image,
             settings: &settings,
+            deadline: sdhop::vision::Deadline::NONE,
         })
         .collect();
     let pyramids: Vec<Vec<FeaturePyramid>> = backend

@@ -325,6 +325,7 @@ fn detect_through(
     let job = FeatureJob {
         image: img,
         settings: &settings,
+        deadline: sdhop::vision::Deadline::NONE,
     };
     let pyrs = gpu.pyramids(&[job]).pop().unwrap().unwrap();
     let bounds = model_bounds(gpu, &pyrs, models);
@@ -425,6 +426,7 @@ fn buffers_are_reused_and_device_loss_falls_back_to_the_cpu() {
     let job = FeatureJob {
         image: &s.image,
         settings: &settings,
+        deadline: sdhop::vision::Deadline::NONE,
     };
     let pyrs = gpu.pyramids(&[job]).pop().unwrap().unwrap();
     assert!(!gpu.healthy(), "a lost device marks the backend unhealthy");
@@ -437,6 +439,7 @@ fn buffers_are_reused_and_device_loss_falls_back_to_the_cpu() {
         .pyramids(&[FeatureJob {
             image: &s.image,
             settings: &settings,
+            deadline: sdhop::vision::Deadline::NONE,
         }])
         .pop()
         .unwrap()

@@ -88,11 +88,25 @@ fn params(fx: f64, rotation: [[f64; 3]; 3], t: [f64; 3]) -> Value {
     })
 }
 
-/// The service still answers a detection and says it is ready.
+/// The service says it is ready (within a few seconds: while the worker
+/// finishes giving up on a request past its deadline, the watchdog keeps
+/// it not ready) and still answers a detection.
 async fn still_serving(server: &Server) {
     let c = reqwest::Client::new();
-    let r = c.get(server.url("/health/ready")).send().await.unwrap();
-    assert_eq!(r.status(), StatusCode::OK, "not ready afterwards");
+    let t = Instant::now();
+    loop {
+        let r = c.get(server.url("/health/ready")).send().await.unwrap();
+        if r.status() == StatusCode::OK {
+            break;
+        }
+        let body: Value = r.json().await.unwrap();
+        assert!(
+            t.elapsed() < Duration::from_secs(5),
+            "not ready 5 s afterwards: {body}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    eprintln!("ready again after {:?}", t.elapsed());
     let img = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
     let r = c
         .post(server.url("/detect?timeout_ms=10000"))
@@ -152,6 +166,55 @@ async fn pathological_poses_are_refused_or_cut_at_their_deadline() {
     assert!(took < Duration::from_millis(1500), "{took:?}");
     still_serving(&server).await;
     assert!(server.stop().await, "the drain did not finish");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_detection_past_its_deadline_gives_the_worker_back() {
+    let server = Server::start(
+        InferConfig {
+            max_batch: 1,
+            ..InferConfig::default()
+        },
+        HttpConfig::default(),
+    )
+    .await;
+    let c = reqwest::Client::new();
+    let big = encode(&synthetic_scene(4, 4000, 3000), image::ImageFormat::Png);
+    let detect = |q: &str, body: Vec<u8>| {
+        c.post(server.url(&format!("/detect{q}")))
+            .header(CONTENT_TYPE, "image/png")
+            .body(body)
+            .send()
+    };
+    // The whole computation, for reference.
+    let t = Instant::now();
+    let r = detect("?timeout_ms=120000&threshold=-1000", big.clone())
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let full = t.elapsed();
+    // With a short deadline it is answered 503 at the deadline, and the
+    // worker stops computing it: a small request right behind it is
+    // answered long before the whole computation would have ended.
+    let t = Instant::now();
+    let cut = tokio::spawn(detect("?timeout_ms=1500&threshold=-1000", big));
+    // Past its upload and decoding: the worker computes it.
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    let small = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
+    let r = detect("?timeout_ms=60000", small).await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let behind = t.elapsed();
+    let r = cut.await.unwrap().unwrap();
+    assert_eq!(r.status().as_u16(), 503);
+    let body: Value = r.json().await.unwrap();
+    assert_eq!(body["kind"], "deadline_exceeded");
+    eprintln!("whole computation {full:?}; the request behind the cut one {behind:?}");
+    assert!(
+        behind < full.mul_f64(0.7),
+        "the worker kept computing past the deadline: {behind:?} against {full:?}"
+    );
+    still_serving(&server).await;
+    assert!(server.stop().await);
 }
 
 /// A raw connection that sent the headers and the first bytes of a body

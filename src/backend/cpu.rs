@@ -28,7 +28,8 @@ impl Backend for CpuBackend {
                 job.settings
                     .iter()
                     .map(|(p, s)| {
-                        FeaturePyramid::build(job.image, p, s).map_err(BackendError::from)
+                        FeaturePyramid::build_until(job.image, p, s, job.deadline)
+                            .map_err(BackendError::from)
                     })
                     .collect()
             })

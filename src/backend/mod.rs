@@ -16,7 +16,7 @@ use crate::vision::energy::ViewWeights;
 use crate::vision::image::ColorImage;
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
-use crate::vision::VisionError;
+use crate::vision::{Deadline, VisionError};
 
 pub use cpu::CpuBackend;
 pub use gpu::{GpuBackend, GpuError, GpuOptions};
@@ -45,6 +45,9 @@ pub struct BackendInfo {
 pub struct FeatureJob<'a> {
     pub image: &'a ColorImage,
     pub settings: &'a [(PyramidParams, SegmentParams)],
+    /// The request's deadline: a backend may give up on the job once it
+    /// has passed ([`VisionError::DeadlineExceeded`]).
+    pub deadline: Deadline,
 }
 
 /// A compute backend.

@@ -113,10 +113,12 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
     let jobs: Vec<FeatureJob<'_>> = detections
         .iter()
         .zip(&settings)
-        .filter_map(|(d, s)| {
+        .zip(&deadlines)
+        .filter_map(|((d, s), deadline)| {
             Some(FeatureJob {
                 image: d.as_ref()?.0,
                 settings: s.as_ref()?,
+                deadline: *deadline,
             })
         })
         .collect();

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::hog::{hog, HogMap, CELL_SIZE};
 use super::image::ColorImage;
 use super::segment::{segment, SegmentParams, Segmentation};
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// Pyramid settings: levels at `max_scale * 2^(-l / levels_per_octave)` down
 /// to `min_scale` (scale = level size / image size).
@@ -119,6 +119,18 @@ impl FeaturePyramid {
         params: &PyramidParams,
         seg: &SegmentParams,
     ) -> Result<Self, VisionError> {
+        Self::build_until(img, params, seg, Deadline::NONE)
+    }
+
+    /// [`Self::build`] that gives up with
+    /// [`VisionError::DeadlineExceeded`] once `deadline` has passed (looked
+    /// at before each level and after the segmentation).
+    pub fn build_until(
+        img: &ColorImage,
+        params: &PyramidParams,
+        seg: &SegmentParams,
+        deadline: Deadline,
+    ) -> Result<Self, VisionError> {
         params.validate()?;
         seg.validate()?;
         let start = Instant::now();
@@ -139,6 +151,9 @@ impl FeaturePyramid {
                         (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
                     })
                     .map(|(lw, lh)| {
+                        if deadline.passed() {
+                            return Err(VisionError::DeadlineExceeded);
+                        }
                         let resized = img.resize_area(lw, lh)?;
                         Ok((lw, lh, hog(&resized)))
                     })
@@ -148,6 +163,9 @@ impl FeaturePyramid {
         );
         let (segmentation, segmentation_ms) = segmentation?;
         let (hogs, features_ms) = hogs?;
+        if deadline.passed() {
+            return Err(VisionError::DeadlineExceeded);
+        }
         let t = Instant::now();
         let levels = hogs
             .into_par_iter()
