@@ -311,8 +311,17 @@ async fn connections_over_the_per_client_limit_are_refused() {
     // The places come back when the connections close.
     drop(idle);
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let r = reqwest::get(server.url("/health/live")).await.unwrap();
-    assert_eq!(r.status(), StatusCode::OK);
+    let text = reqwest::get(server.url("/metrics"))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        text.contains("sdhop_http_connections_refused_total{limit=\"per_client\"} 1"),
+        "{text}"
+    );
+    assert!(text.contains("sdhop_http_connections_open 1"), "{text}");
     assert!(server.stop().await);
 }
 

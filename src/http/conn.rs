@@ -19,6 +19,7 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 
 use super::error::{ErrorBody, RETRY_AFTER_SECONDS};
+use super::metrics::HttpMetrics;
 
 /// How long a refused connection is read (and discarded) after its answer,
 /// so that the client reads the answer rather than a reset connection.
@@ -143,19 +144,22 @@ impl Refusal {
     }
 }
 
-/// A TCP listener that enforces [`ConnLimits`].
+/// A TCP listener that enforces [`ConnLimits`] and counts connections in
+/// `metrics`.
 pub struct LimitedListener {
     inner: TcpListener,
     limits: ConnLimits,
     tracker: ConnTracker,
+    metrics: HttpMetrics,
 }
 
 impl LimitedListener {
-    pub fn new(inner: TcpListener, limits: ConnLimits) -> Self {
+    pub fn new(inner: TcpListener, limits: ConnLimits, metrics: HttpMetrics) -> Self {
         Self {
             inner,
             limits,
             tracker: ConnTracker::default(),
+            metrics,
         }
     }
 
@@ -194,15 +198,25 @@ impl Listener for LimitedListener {
             match self.tracker.take(addr.ip(), &self.limits) {
                 Ok(slot) => {
                     let _ = stream.set_nodelay(true);
+                    self.metrics.connections_open.inc();
                     return (
                         Counted {
                             stream,
                             _slot: slot,
+                            open: self.metrics.connections_open.clone(),
                         },
                         addr,
                     );
                 }
                 Err(why) => {
+                    let limit = match why {
+                        Refusal::PerClient => "per_client",
+                        Refusal::Total => "total",
+                    };
+                    self.metrics
+                        .connections_refused
+                        .with_label_values(&[limit])
+                        .inc();
                     tracing::warn!(client = %addr.ip(), ?why, "connection refused by the connection limits");
                     tokio::spawn(refuse(stream, why.response(&self.limits)));
                 }
@@ -219,6 +233,13 @@ impl Listener for LimitedListener {
 pub struct Counted {
     stream: TcpStream,
     _slot: Slot,
+    open: prometheus::IntGauge,
+}
+
+impl Drop for Counted {
+    fn drop(&mut self) {
+        self.open.dec();
+    }
 }
 
 impl AsyncRead for Counted {

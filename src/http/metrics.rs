@@ -6,12 +6,16 @@ use std::time::Instant;
 use axum::extract::{MatchedPath, Request, State};
 use axum::middleware::Next;
 use axum::response::Response;
-use prometheus::{HistogramOpts, HistogramVec, IntCounterVec, Opts, Registry};
+use prometheus::{HistogramOpts, HistogramVec, IntCounterVec, IntGauge, Opts, Registry};
 
 #[derive(Clone)]
 pub struct HttpMetrics {
     pub requests: IntCounterVec,
     pub duration: HistogramVec,
+    /// Open connections.
+    pub connections_open: IntGauge,
+    /// Connections refused by a connection limit (`total`, `per_client`).
+    pub connections_refused: IntCounterVec,
 }
 
 impl HttpMetrics {
@@ -33,9 +37,25 @@ impl HttpMetrics {
             ]),
             &["route"],
         )?;
+        let connections_open =
+            IntGauge::new("sdhop_http_connections_open", "Open HTTP connections")?;
+        let connections_refused = IntCounterVec::new(
+            Opts::new(
+                "sdhop_http_connections_refused_total",
+                "Connections answered 503 (total) or 429 (per_client) by a connection limit",
+            ),
+            &["limit"],
+        )?;
         registry.register(Box::new(requests.clone()))?;
         registry.register(Box::new(duration.clone()))?;
-        Ok(Self { requests, duration })
+        registry.register(Box::new(connections_open.clone()))?;
+        registry.register(Box::new(connections_refused.clone()))?;
+        Ok(Self {
+            requests,
+            duration,
+            connections_open,
+            connections_refused,
+        })
     }
 }
 

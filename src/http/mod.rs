@@ -112,7 +112,8 @@ pub async fn serve(
     let app = router(Arc::clone(&state));
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let signal_state = Arc::clone(&state);
-    let listener = conn::LimitedListener::new(listener, state.config.connections);
+    let listener =
+        conn::LimitedListener::new(listener, state.config.connections, state.metrics.clone());
     let server = axum::serve(listener, app).with_graceful_shutdown(async move {
         shutdown.await;
         signal_state.begin_shutdown();
