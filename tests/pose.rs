@@ -112,10 +112,11 @@ fn unoccluded_scenes_converge_to_the_true_pose() {
 }
 
 #[test]
-fn the_anchor_holds_what_the_edges_cannot_see() {
+fn the_start_prior_holds_what_the_edges_cannot_see() {
     // A cylinder's spin about its axis leaves its edges unchanged: without
-    // the anchor it drifts with the image noise, with it it stays where the
-    // start had it (one track, no restarts, to see the steps alone).
+    // the start prior it drifts with the image noise, with it it stays
+    // where the start had it (one track, no restarts, to see the steps
+    // alone).
     let mesh = Mesh::cylinder(0.04, 0.15, 48);
     let single = IrlsParams {
         restart_degrees: 0.0,
@@ -131,7 +132,7 @@ fn the_anchor_holds_what_the_edges_cannot_see() {
         let start = perturb(&pose, 0.01, 5.0, 200 + seed);
         let anchored = refine(&scene.image, &edges, &K, &start, None, &single).unwrap();
         let unanchored = IrlsParams {
-            anchor_weight: 0.0,
+            start_sigma_degrees: 0.0,
             ..single
         };
         let drifting = refine(&scene.image, &edges, &K, &start, None, &unanchored).unwrap();
@@ -140,16 +141,20 @@ fn the_anchor_holds_what_the_edges_cannot_see() {
             spin_degrees(&drifting.pose, &start),
         );
         println!("seed {seed}: spin moved {a:.3} deg anchored, {b:.3} deg without");
-        // The axis still converges.
+        // The axis still converges from 5 degrees off (to within 1: the
+        // MAP prior weighs the start against the edges, which on these
+        // clean renders leaves about half a degree).
         let axis = (anchored.pose.rotation * Vector3::z())
             .angle(&(pose.rotation * Vector3::z()))
             .to_degrees();
-        assert!(axis < 0.5, "seed {seed}: axis {axis} deg off");
+        assert!(axis < 1.0, "seed {seed}: axis {axis} deg off");
         held = held.max(a.abs());
         free = free.max(b.abs());
     }
-    assert!(held < 1.0, "the anchored spin moved {held} deg");
-    assert!(free > 2.0 * held, "without the anchor: {free} deg");
+    // With sigma = 5 degrees on the start (the prior weighs it against
+    // what the noise suggests) the spin stays within a degree and a half.
+    assert!(held < 1.5, "the held spin moved {held} deg");
+    assert!(free > 2.0 * held, "without the prior: {free} deg");
 }
 
 #[test]

@@ -13,6 +13,7 @@ mod eval;
 mod pose;
 mod pose_bench;
 mod pose_data;
+mod pose_eval;
 mod train;
 
 use std::path::{Path, PathBuf};
@@ -47,6 +48,7 @@ use eval::*;
 use pose::*;
 use pose_bench::*;
 use pose_data::*;
+use pose_eval::*;
 use train::*;
 
 #[derive(Parser)]
@@ -86,6 +88,10 @@ pub(crate) enum Command {
     /// OR-IRLS with the SD-HOP mask on held-out backgrounds; six mean
     /// errors and success rates.
     PoseBench(PoseBenchArgs),
+    /// Pose refinement on real photographs in BOP format (LM-O): IRLS and
+    /// OR-IRLS from seeded starts, the paper's Table 2 per object, rows for
+    /// unoccluded instances and other starts, JSON report.
+    PoseEval(PoseEvalArgs),
     /// Generate a synthetic occluded scene and a hand-built model of its object,
     /// detect, and report box and mask accuracy against the exact truth.
     Demo(DemoArgs),
@@ -175,6 +181,7 @@ pub fn main() -> ExitCode {
         Command::Pose(a) => run_pose(a),
         Command::PoseData(a) => run_pose_data(a),
         Command::PoseBench(a) => run_pose_bench(a),
+        Command::PoseEval(a) => run_pose_eval(a),
         Command::Demo(a) => run_demo(a),
     };
     match result {

@@ -7,6 +7,7 @@
 //! samples contain no instance. Bad annotations are reported with the file
 //! name and skipped ([`Loaded::skipped`]), never a panic.
 
+pub mod bop;
 pub mod coco;
 pub mod ko8;
 

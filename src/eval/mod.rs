@@ -4,6 +4,7 @@
 //! scorer does, [`pose`] is the occlusion pose benchmark on rendered
 //! scenes, [`plot`] draws their curves.
 
+pub mod bop_pose;
 pub mod detection;
 pub mod plot;
 pub mod pose;

@@ -8,7 +8,8 @@
 //! normal for the strongest image edge of compatible orientation; then a few
 //! Gauss-Newton steps on the 6-d twist minimise the Tukey-weighted
 //! point-to-edge distances along the normals (robust scale by the median
-//! absolute deviation). It stops when the pose no longer changes.
+//! absolute deviation), with the start pose's uncertainty as a MAP prior.
+//! It stops when the pose no longer changes.
 //!
 //! Why one file of about 970 lines: the edge search, the robust
 //! Gauss-Newton step, the restarts and their ranking share one `Context`
@@ -66,16 +67,17 @@ pub struct IrlsParams {
     /// Restarts move the initial pose this share of its distance nearer
     /// and farther (0: none).
     pub restart_depth: f64,
-    /// Matched edge samples that a pixel of image motion from the initial
-    /// pose costs when the restarts are ranked (see [`refine`]).
-    pub prior_weight: f64,
-    /// Weight, against an edge sample's (at most 1), of each coordinate
-    /// of each of the object's box corners held at its image position at
-    /// the initial pose in the Gauss-Newton steps: a weak prior that keeps
-    /// directions the edges do not fix (the spin of a rounded object, a
-    /// half-hidden one) near the client's pose instead of drifting (0:
-    /// none).
-    pub anchor_weight: f64,
+    /// The start pose's uncertainty as a MAP prior: standard deviation of
+    /// its rotation, degrees (0: no prior).
+    pub start_sigma_degrees: f64,
+    /// Standard deviation of its translation, in mesh units; `None`: a
+    /// tenth of the diagonal of the mesh's bounding box.
+    #[serde(default)]
+    pub start_sigma_translation: Option<f64>,
+    /// Edge samples per independent measurement: neighbouring samples of
+    /// one outline share their errors (the same wrong edge), so the data
+    /// term's information is divided by this against the prior.
+    pub sample_correlation: f64,
 }
 
 impl Default for IrlsParams {
@@ -95,8 +97,9 @@ impl Default for IrlsParams {
             restart_degrees: 10.0,
             restart_rings: 1,
             restart_depth: 0.02,
-            prior_weight: 4.0,
-            anchor_weight: 0.003,
+            start_sigma_degrees: 5.0,
+            start_sigma_translation: None,
+            sample_correlation: 8.0,
         }
     }
 }
@@ -121,10 +124,13 @@ impl IrlsParams {
             && (0.0..=45.0).contains(&self.restart_degrees)
             && self.restart_rings <= 4
             && (0.0..0.5).contains(&self.restart_depth)
-            && self.prior_weight.is_finite()
-            && self.prior_weight >= 0.0
-            && self.anchor_weight.is_finite()
-            && self.anchor_weight >= 0.0;
+            && self.start_sigma_degrees.is_finite()
+            && self.start_sigma_degrees >= 0.0
+            && self
+                .start_sigma_translation
+                .is_none_or(|v| v.is_finite() && v > 0.0)
+            && self.sample_correlation.is_finite()
+            && self.sample_correlation >= 1.0;
         if ok {
             Ok(())
         } else {
@@ -209,6 +215,19 @@ fn pixel_index(p: &Vector2<f64>, width: usize, height: usize) -> Option<usize> {
 
 /// Tolerance (pixels) of the agreement that ranks the restarts.
 pub const AGREE_PX: f64 = 1.0;
+/// How far (pixels each way) the evidence of a pose looks for an edge.
+const EVIDENCE_RANGE_PX: f64 = 8.0;
+/// Distance (pixels) at which an edge sample's squared distance stops
+/// growing in the evidence (a robust, truncated quadratic).
+const EVIDENCE_CUT_PX: f64 = 3.0;
+
+/// How well a pose's edges agree with the image (see `Context::evidence`).
+#[derive(Clone, Copy, Debug)]
+struct Evidence {
+    mean: f64,
+    samples: usize,
+    agreement: f64,
+}
 /// Tracks closer than this (mean corner motion, pixels) merge.
 const MERGE_PX: f64 = 0.5;
 
@@ -433,6 +452,13 @@ pub struct PoseResult {
     /// 6x6 covariance of the twist `(v, w)` from the weighted normal
     /// equations (`sigma^2 H^-1`); rows of `(vx, vy, vz, wx, wy, wz)`.
     pub covariance: [[f64; 6]; 6],
+    /// The share of the visible model edge samples (in the mask) with a
+    /// compatible image edge within 1.5 px at the answered pose: how well
+    /// the image supports it (see `Context::evidence`).
+    pub agreement: f64,
+    /// The refinement found no pose the image supports better than the
+    /// start (by the MAP cost), so the start is answered.
+    pub start_kept: bool,
 }
 
 /// What every track of a refinement shares: the image's gradients, the
@@ -447,10 +473,11 @@ struct Context<'a> {
     params: &'a IrlsParams,
     radius: f64,
     initial: Pose,
-    /// The box corners' image positions at the initial pose.
-    anchors: [Option<Vector2<f64>>; 8],
     /// When to give up.
     deadline: Deadline,
+    /// Standard deviations (translation in mesh units, rotation in
+    /// radians) of the start pose's prior, if any.
+    prior: Option<(f64, f64)>,
 }
 
 /// One refinement from one start pose.
@@ -477,6 +504,23 @@ fn growth(params: &IrlsParams, range: f64) -> usize {
 }
 
 impl Context<'_> {
+    /// The deviation of `pose` from the initial pose, `(t - t0, log(R
+    /// R0^T))`, and its derivative in the twist of [`Pose::updated`].
+    fn deviation(&self, pose: &Pose) -> (Vector6<f64>, Matrix6<f64>) {
+        let dt = pose.translation - self.initial.translation;
+        let dr = nalgebra::Rotation3::from_matrix_unchecked(
+            pose.rotation * self.initial.rotation.transpose(),
+        )
+        .scaled_axis();
+        let e = Vector6::new(dt.x, dt.y, dt.z, dr.x, dr.y, dr.z);
+        let t = pose.translation;
+        let mut jp = Matrix6::identity();
+        // d(t')/dw = -[t]x (t' = t + w x t + v).
+        let skew = nalgebra::Matrix3::new(0.0, t.z, -t.y, -t.z, 0.0, t.x, t.y, -t.x, 0.0);
+        jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew);
+        (e, jp)
+    }
+
     /// Image motion of the model's points under a twist, at the pose's depth.
     fn motion(&self, pose: &Pose, xi: &Vector6<f64>) -> f64 {
         let z = pose.translation.z.abs().max(1e-9);
@@ -505,44 +549,64 @@ impl Context<'_> {
         sum / corners.len() as f64
     }
 
-    /// The score that ranks the restarts: how well the model's edges agree
-    /// with the image at `pose` (matched samples within [`AGREE_PX`]), less
-    /// [`IrlsParams::prior_weight`] per pixel that the object's box corners
-    /// moved in the image from the initial pose. The prior matters where
-    /// the edges leave the pose ambiguous (a crease without contrast, a
-    /// small visible part): there the pose near the client's start wins.
-    fn score(&self, pose: &Pose) -> Result<f64, PoseError> {
-        let moved = self.displacement(pose, &self.initial);
-        Ok(self.matched(pose)? as f64 - self.params.prior_weight * moved)
-    }
-
-    /// The visible model edge samples at `pose` that lie in the mask (grown
-    /// by the margin) and have a compatible image edge within [`AGREE_PX`]
-    /// along their normal, also in the mask.
-    fn matched(&self, pose: &Pose) -> Result<usize, PoseError> {
+    /// How well the model's edges at `pose` agree with the image: over
+    /// the visible model edge samples in the mask (grown by the margin),
+    /// the mean of `min(d, EVIDENCE_CUT_PX)^2` where `d` is the distance
+    /// along the normal to the nearest compatible image edge in the mask
+    /// (within [`EVIDENCE_RANGE_PX`]; none counts as the cut), the number
+    /// of samples, and the share of them with an edge within
+    /// [`AGREE_PX`]`* 1.5`.
+    fn evidence(&self, pose: &Pose) -> Result<Evidence, PoseError> {
         let (g, params) = (&self.grads, self.params);
         let depth = self
             .edges
             .depth(self.k, pose, g.width, g.height, &self.deadline)?;
         let near = IrlsParams {
-            search_range: AGREE_PX,
+            search_range: EVIDENCE_RANGE_PX,
             ..*params
         };
         let margin = params.mask_margin_px;
         let in_mask = |p: &Vector2<f64>| self.mask.as_ref().is_none_or(|m| m.within(p, margin));
-        Ok(self
+        let cut2 = EVIDENCE_CUT_PX * EVIDENCE_CUT_PX;
+        let (mut sum, mut n, mut close) = (0.0, 0usize, 0usize);
+        for s in self
             .edges
             .samples(self.k, pose, &depth, params.sample_step, &self.deadline)?
             .iter()
             .filter(|s| in_mask(&s.pixel))
-            .filter(|s| {
-                search(g, s, &near).is_some_and(|(found, n)| {
-                    found[..n]
-                        .iter()
-                        .any(|&o| o.abs() <= AGREE_PX && in_mask(&(s.pixel + s.normal * o)))
-                })
-            })
-            .count())
+        {
+            let d = search(g, s, &near).and_then(|(found, m)| {
+                found[..m]
+                    .iter()
+                    .filter(|&&o| in_mask(&(s.pixel + s.normal * o)))
+                    .map(|o| o.abs())
+                    .min_by(f64::total_cmp)
+            });
+            let d = d.unwrap_or(EVIDENCE_CUT_PX).min(EVIDENCE_CUT_PX);
+            sum += d * d;
+            n += 1;
+            close += usize::from(d <= 1.5 * AGREE_PX);
+        }
+        Ok(Evidence {
+            mean: if n > 0 { sum / n as f64 } else { cut2 },
+            samples: n,
+            agreement: if n > 0 { close as f64 / n as f64 } else { 0.0 },
+        })
+    }
+
+    /// The MAP cost of `pose` (lower is better): the evidence's mean
+    /// squared distance times `n_ref` samples (those at the initial pose)
+    /// shared by correlated samples, plus the start prior's
+    /// `e^T Lambda e`.
+    fn map_cost(&self, ev: &Evidence, pose: &Pose, n_ref: usize) -> f64 {
+        let data = ev.mean * n_ref as f64 / self.params.sample_correlation;
+        let prior = self.prior.map_or(0.0, |(st, sr)| {
+            let (e, _) = self.deviation(pose);
+            let t = e.fixed_rows::<3>(0).norm_squared() / (st * st);
+            let r = e.fixed_rows::<3>(3).norm_squared() / (sr * sr);
+            t + r
+        });
+        data + prior
     }
 
     /// One outer iteration of `t`: fresh correspondences, then a few
@@ -633,18 +697,26 @@ impl Context<'_> {
             if inliers < 6 {
                 return Err(PoseError::NotEnoughEdges(inliers));
             }
-            let anchor = params.anchor_weight;
-            if anchor > 0.0 {
-                let corners = self.edges.box_corners();
-                for (c, at) in corners.iter().zip(&self.anchors) {
-                    let Some(at) = at else { continue };
-                    for n in [Vector2::x(), Vector2::y()] {
-                        if let Some((r, j)) = residual_and_jacobian(k, &t.pose, c, &n, at) {
-                            h += j * j.transpose() * anchor;
-                            g += j * (anchor * r);
-                        }
-                    }
-                }
+            if let Some((sigma_t, sigma_r)) = self.prior {
+                // The data term in units of its noise, shared by correlated
+                // samples; then the start pose's prior on the deviation
+                // e = (t - t0, log(R R0^T)), whose derivative in the twist
+                // is [[I, -[t]x], [0, I]].
+                let scale = 1.0 / (sigma.max(1.0).powi(2) * params.sample_correlation);
+                h *= scale;
+                g *= scale;
+                let (e, jp) = self.deviation(&t.pose);
+                let lambda = Vector6::new(
+                    1.0 / (sigma_t * sigma_t),
+                    1.0 / (sigma_t * sigma_t),
+                    1.0 / (sigma_t * sigma_t),
+                    1.0 / (sigma_r * sigma_r),
+                    1.0 / (sigma_r * sigma_r),
+                    1.0 / (sigma_r * sigma_r),
+                );
+                let l = Matrix6::from_diagonal(&lambda);
+                h += jp.transpose() * l * jp;
+                g += jp.transpose() * (l * e);
             }
             // Levenberg-Marquardt damping keeps weakly constrained
             // directions (e.g. rotation about a cylinder's axis) still.
@@ -661,7 +733,13 @@ impl Context<'_> {
             }
             t.pose = t.pose.updated(&step);
             let rms = (wr2 / wsum.max(1e-12)).sqrt();
-            let cov = damped.try_inverse().unwrap_or_else(Matrix6::zeros) * (sigma * sigma);
+            // With the prior the equations are already in units of the noise.
+            let noise = if self.prior.is_some() {
+                1.0
+            } else {
+                sigma * sigma
+            };
+            let cov = damped.try_inverse().unwrap_or_else(Matrix6::zeros) * noise;
             t.last = (rms, inliers, matches.len(), cov);
         }
         // How far this iteration moved the model's points in the image.
@@ -715,9 +793,18 @@ pub fn restart_poses(initial: &Pose, degrees: f64, rings: usize, depth: f64) -> 
 /// when little of the object is visible, so the refinement restarts from
 /// poses around `initial` (see [`restart_poses`]). The tracks run to
 /// convergence together (tracks that meet merge), and the answer is the
-/// one with the best score: its visible model edge samples with an image
-/// edge within [`AGREE_PX`] in the mask, less a prior on how far it moved
-/// from `initial` (see `Context::score`).
+/// one with the lowest MAP cost: the robust (truncated quadratic) distance
+/// of its visible model edge samples to the image's edges in the mask,
+/// shared by correlated samples, plus the start prior (see
+/// `Context::map_cost`). The initial pose competes too: when no track
+/// beats it, it is answered (`start_kept`, not converged).
+///
+/// The start prior ([`IrlsParams::start_sigma_degrees`],
+/// [`IrlsParams::start_sigma_translation`]) also enters every Gauss-Newton
+/// step as a MAP term on the deviation from `initial`: on real
+/// photographs a few pixels of wrong edge matches are tens of millimetres
+/// of depth, and the prior lets a direction move only as far as the image
+/// supports.
 pub fn refine(
     img: &ColorImage,
     edges: &EdgeModel,
@@ -762,10 +849,18 @@ pub fn refine_until(
         params,
         radius: edges.radius(),
         initial: *initial,
-        anchors: edges
-            .box_corners()
-            .map(|c| k.project(&initial.transform(&c))),
         deadline,
+        prior: (params.start_sigma_degrees > 0.0).then(|| {
+            let c = edges.box_corners();
+            let diagonal = (c[7] - c[0]).norm();
+            (
+                params
+                    .start_sigma_translation
+                    .unwrap_or(0.1 * diagonal)
+                    .max(1e-12),
+                params.start_sigma_degrees.to_radians(),
+            )
+        }),
     };
     let new_track = |pose: Pose| Track {
         pose,
@@ -817,20 +912,34 @@ pub fn refine_until(
             }
         }
     }
-    let scored: Vec<(f64, Track)> = tracks
+    // The MAP cost ranks the tracks, and the initial pose itself competes:
+    // a refinement that the image supports no better than the start is
+    // not answered (the start is, marked not converged).
+    let start_ev = ctx.evidence(initial)?;
+    let n_ref = start_ev.samples.max(1);
+    let scored: Vec<(f64, Evidence, Track)> = tracks
         .into_par_iter()
-        .map(|t| Ok((ctx.score(&t.pose)?, t)))
+        .map(|t| {
+            let ev = ctx.evidence(&t.pose)?;
+            Ok((ctx.map_cost(&ev, &t.pose, n_ref), ev, t))
+        })
         .collect::<Result<_, PoseError>>()?;
     // The best; among equals the earlier start (the initial pose first).
-    let mut best: Option<(f64, Track)> = None;
+    let mut best: Option<(f64, Evidence, Track)> = None;
     for t in scored {
-        if best.as_ref().is_none_or(|b| t.0 > b.0) {
+        if best.as_ref().is_none_or(|b| t.0 < b.0) {
             best = Some(t);
         }
     }
-    let Some((_, best)) = best else {
+    let Some((best_cost, mut ev, mut best)) = best else {
         return Err(first_error.unwrap_or(PoseError::NotEnoughEdges(0)));
     };
+    let start_kept = ctx.map_cost(&start_ev, initial, n_ref) <= best_cost;
+    if start_kept {
+        best.pose = *initial;
+        best.converged = false;
+        ev = start_ev;
+    }
     let (rms, inliers, samples, cov) = best.last;
     let mut covariance = [[0.0; 6]; 6];
     for (r, row) in covariance.iter_mut().enumerate() {
@@ -846,6 +955,8 @@ pub fn refine_until(
         inliers,
         samples,
         covariance,
+        agreement: ev.agreement,
+        start_kept,
     })
 }
 

@@ -1,0 +1,57 @@
+//! OR-IRLS on real photographs: a few LM-O development instances (the
+//! protocol of `sdhop-train pose-eval`, 5 degree / 10 mm starts, 40-80%
+//! visible) must end better than they started on average. Needs
+//! `../shared/data/lmo_dev`: ignored by default, run with
+//! `--include-ignored` where the data is (CI does).
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use sdhop::data::bop::Bop;
+use sdhop::eval::bop_pose::{run, select, summarize, table, Row, Selection};
+use sdhop::pose::Mesh;
+
+#[test]
+#[ignore = "needs ../shared/data/lmo_dev"]
+fn or_irls_improves_the_start_on_real_photographs() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/lmo_dev");
+    assert!(root.join("test").is_dir(), "needs {}", root.display());
+    let bop = Bop::load(&root).unwrap();
+    let objects: Vec<u32> = bop.models.keys().copied().collect();
+    let meshes: BTreeMap<u32, Mesh> = objects
+        .iter()
+        .map(|&o| {
+            let bytes = std::fs::read(bop.model_path(o)).unwrap();
+            (o, Mesh::parse(&bytes).unwrap())
+        })
+        .collect();
+    let row = Row {
+        name: "occluded".into(),
+        visib: (0.4, 0.8),
+        start_degrees: 5.0,
+        start_mm: 10.0,
+    };
+    let sel = Selection {
+        objects,
+        per_object: 4,
+        max_oracle_gap: 0.1,
+        seed: 7,
+    };
+    let cases = select(&bop, &row, &sel);
+    assert!(cases.len() >= 12, "{} instances", cases.len());
+    let outcomes = run(&bop, &cases, &meshes, || {}).unwrap();
+    println!(
+        "{}",
+        table("LM-O development, a few instances", &outcomes, None)
+    );
+    let start = summarize(&outcomes, "initial", None).unwrap();
+    let or = summarize(&outcomes, "or_irls", None).unwrap();
+    assert!(
+        or.mean_t < start.mean_t && or.mean_angle < start.mean_angle,
+        "OR-IRLS {:.2} / {:.2} deg against the start's {:.2} / {:.2} deg",
+        or.mean_t,
+        or.mean_angle,
+        start.mean_t,
+        start.mean_angle
+    );
+}
