@@ -141,7 +141,45 @@ impl IrlsParams {
     }
 }
 
-/// Image gradients (Sobel on the grey image, after a 3x3 binomial blur).
+/// A 3x3 binomial blur and then Sobel derivatives of one plane (each
+/// normalised to intensity per pixel).
+fn sobel(plane: &[f32], w: usize, h: usize) -> (Vec<f32>, Vec<f32>) {
+    let at = |v: &[f32], x: isize, y: isize| {
+        let x = x.clamp(0, w as isize - 1) as usize;
+        let y = y.clamp(0, h as isize - 1) as usize;
+        v[y * w + x]
+    };
+    let mut blur = vec![0.0f32; w * h];
+    for y in 0..h as isize {
+        for x in 0..w as isize {
+            let mut s = 0.0;
+            for (dy, wy) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                for (dx, wx) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                    s += wx * wy * at(plane, x + dx, y + dy);
+                }
+            }
+            blur[y as usize * w + x as usize] = s / 16.0;
+        }
+    }
+    let mut gx = vec![0.0f32; w * h];
+    let mut gy = vec![0.0f32; w * h];
+    for y in 0..h as isize {
+        for x in 0..w as isize {
+            let p = |dx, dy| at(&blur, x + dx, y + dy);
+            let i = y as usize * w + x as usize;
+            gx[i] = ((p(1, -1) + 2.0 * p(1, 0) + p(1, 1))
+                - (p(-1, -1) + 2.0 * p(-1, 0) + p(-1, 1)))
+                / 8.0;
+            gy[i] = ((p(-1, 1) + 2.0 * p(0, 1) + p(1, 1))
+                - (p(-1, -1) + 2.0 * p(0, -1) + p(1, -1)))
+                / 8.0;
+        }
+    }
+    (gx, gy)
+}
+
+/// Image gradients: per pixel the strongest colour channel's Sobel
+/// gradient, after a 3x3 binomial blur (see [`Gradients::new`]).
 pub struct Gradients {
     width: usize,
     height: usize,
@@ -150,44 +188,25 @@ pub struct Gradients {
 }
 
 impl Gradients {
+    /// The Sobel gradient of each colour channel (after a 3x3 binomial
+    /// blur), and at each pixel the channel whose gradient is the
+    /// strongest: an outline between two colours of equal brightness is
+    /// an edge, which the grey image does not show.
     pub fn new(img: &ColorImage) -> Self {
         let (w, h) = (img.width(), img.height());
-        let grey: Vec<f32> = img
-            .data()
-            .chunks_exact(3)
-            .map(|c| (c[0] + c[1] + c[2]) / 3.0)
+        let planes: Vec<(Vec<f32>, Vec<f32>)> = (0..3)
+            .map(|c| {
+                let plane: Vec<f32> = img.data().iter().skip(c).step_by(3).copied().collect();
+                sobel(&plane, w, h)
+            })
             .collect();
-        let at = |v: &[f32], x: isize, y: isize| {
-            let x = x.clamp(0, w as isize - 1) as usize;
-            let y = y.clamp(0, h as isize - 1) as usize;
-            v[y * w + x]
-        };
-        let mut blur = vec![0.0f32; w * h];
-        for y in 0..h as isize {
-            for x in 0..w as isize {
-                let mut s = 0.0;
-                for (dy, wy) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
-                    for (dx, wx) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
-                        s += wx * wy * at(&grey, x + dx, y + dy);
-                    }
-                }
-                blur[y as usize * w + x as usize] = s / 16.0;
-            }
-        }
-        let mut gx = vec![0.0f32; w * h];
-        let mut gy = vec![0.0f32; w * h];
-        for y in 0..h as isize {
-            for x in 0..w as isize {
-                let p = |dx, dy| at(&blur, x + dx, y + dy);
-                let i = y as usize * w + x as usize;
-                gx[i] = ((p(1, -1) + 2.0 * p(1, 0) + p(1, 1))
-                    - (p(-1, -1) + 2.0 * p(-1, 0) + p(-1, 1)))
-                    / 8.0;
-                gy[i] = ((p(-1, 1) + 2.0 * p(0, 1) + p(1, 1))
-                    - (p(-1, -1) + 2.0 * p(0, -1) + p(1, -1)))
-                    / 8.0;
-            }
-        }
+        let (gx, gy): (Vec<f32>, Vec<f32>) = (0..w * h)
+            .map(|i| {
+                let strength = |c: usize| planes[c].0[i].powi(2) + planes[c].1[i].powi(2);
+                let best = (1..3).fold(0, |b, c| if strength(c) > strength(b) { c } else { b });
+                (planes[best].0[i], planes[best].1[i])
+            })
+            .unzip();
         Self {
             width: w,
             height: h,
@@ -991,6 +1010,31 @@ mod tests {
             .take(HYPOTHESES)
             .map(|&(v0, t)| t as f64 + subpixel(strength(t - 1), v0, strength(t + 1)))
             .collect()
+    }
+
+    #[test]
+    fn an_outline_between_colours_of_equal_brightness_is_an_edge() {
+        // Red left, green right, both of grey level 40: the grey image has
+        // no edge there, the colour gradient does.
+        let (w, h) = (32, 16);
+        let data: Vec<f32> = (0..w * h)
+            .flat_map(|i| {
+                if i % w < w / 2 {
+                    [120.0, 0.0, 0.0]
+                } else {
+                    [0.0, 120.0, 0.0]
+                }
+            })
+            .collect();
+        let img = ColorImage::new(w, h, data).unwrap();
+        let g = Gradients::new(&img);
+        let at_edge = g.at(&Vector2::new(16.0, 8.0)).unwrap();
+        assert!(
+            at_edge.x.abs() > 20.0 && at_edge.y.abs() < 1e-3,
+            "{at_edge:?}"
+        );
+        let flat = g.at(&Vector2::new(4.0, 8.0)).unwrap();
+        assert!(flat.norm() < 1e-3, "{flat:?}");
     }
 
     #[test]
