@@ -30,6 +30,7 @@ fn or_irls_improves_the_start_on_real_photographs() {
         visib: (0.4, 0.8),
         start_degrees: 5.0,
         start_mm: 10.0,
+        prior_from_start: false,
     };
     let sel = Selection {
         objects,
@@ -39,7 +40,7 @@ fn or_irls_improves_the_start_on_real_photographs() {
     };
     let cases = select(&bop, &row, &sel);
     assert!(cases.len() >= 12, "{} instances", cases.len());
-    let outcomes = run(&bop, &cases, &meshes, || {}).unwrap();
+    let outcomes = run(&bop, &row, &cases, &meshes, || {}).unwrap();
     println!(
         "{}",
         table("LM-O development, a few instances", &outcomes, None)

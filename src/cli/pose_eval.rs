@@ -31,6 +31,12 @@ pub(crate) struct PoseEvalArgs {
     /// Only the main row (occluded, 5 degree / 10 mm starts).
     #[arg(long)]
     pub(crate) main_only: bool,
+    /// Send each row's start distance as the request's start_uncertainty
+    /// (as a client that knows how good its start is); default: the
+    /// service's default uncertainty (5 degrees, 5% of the mesh's
+    /// box diagonal).
+    #[arg(long)]
+    pub(crate) prior_from_start: bool,
     /// Write every outcome and summary as JSON here.
     #[arg(long)]
     pub(crate) report: Option<PathBuf>,
@@ -68,6 +74,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         visib,
         start_degrees,
         start_mm,
+        prior_from_start: args.prior_from_start,
     };
     let mut rows = vec![row("occluded, 5 deg / 10 mm starts", (lo, hi), 5.0, 10.0)];
     if !args.main_only {
@@ -85,7 +92,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         let cases = select(&bop, r, &sel);
         let pb = progress_bar(cases.len() as u64, &r.name);
         let outcomes: Vec<Outcome> =
-            run(&bop, &cases, &meshes, || pb.inc(1)).map_err(Failure::input)?;
+            run(&bop, r, &cases, &meshes, || pb.inc(1)).map_err(Failure::input)?;
         pb.finish_and_clear();
         if ri == 0 {
             for &obj in &objects {

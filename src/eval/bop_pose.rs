@@ -21,7 +21,9 @@ use serde::Serialize;
 
 use crate::data::bop::{Bop, BopImage, Instance};
 use crate::data::load_image;
-use crate::pose::api::{estimate, mask_from_image, MaskSource, PoseJson, PoseParams};
+use crate::pose::api::{
+    estimate, mask_from_image, MaskSource, PoseJson, PoseParams, StartUncertainty,
+};
 use crate::pose::geometry::nearest_rotation;
 use crate::pose::{Intrinsics, Mesh, Pose, PoseError};
 use crate::vision::rng::SplitMix64;
@@ -34,6 +36,10 @@ pub struct Row {
     pub visib: (f64, f64),
     pub start_degrees: f64,
     pub start_mm: f64,
+    /// Send the start's distance as its uncertainty (`start_uncertainty`:
+    /// the row's degrees and mm), as a client that knows it would; else
+    /// the service's default.
+    pub prior_from_start: bool,
 }
 
 /// Settings of the selection.
@@ -200,6 +206,7 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
 /// called after each case.
 pub fn run(
     bop: &Bop,
+    row: &Row,
     cases: &[Case<'_>],
     meshes: &std::collections::BTreeMap<u32, Mesh>,
     mut progress: impl FnMut(),
@@ -275,7 +282,10 @@ pub fn run(
                 model: None,
                 mask: Some(source),
                 max_iterations: None,
-                start_uncertainty: None,
+                start_uncertainty: row.prior_from_start.then_some(StartUncertainty {
+                    degrees: Some(row.start_degrees),
+                    translation: Some(row.start_mm),
+                }),
             };
             let m = (source == MaskSource::Provided).then(|| mask.clone());
             let t = Instant::now();

@@ -61,8 +61,8 @@ pub struct StartUncertainty {
     /// Of its rotation, degrees (default 5; 0: no prior).
     #[serde(default)]
     pub degrees: Option<f64>,
-    /// Of its translation, mesh units (default a tenth of the diagonal of
-    /// the mesh's bounding box).
+    /// Of its translation, mesh units (default 5% of the diagonal of the
+    /// mesh's bounding box).
     #[serde(default)]
     pub translation: Option<f64>,
 }
