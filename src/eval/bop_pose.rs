@@ -19,6 +19,7 @@ use std::time::Instant;
 use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
 use serde::Serialize;
 
+use super::median;
 use crate::data::bop::{Bop, BopImage, Instance};
 use crate::data::load_image;
 use crate::pose::api::{
@@ -271,14 +272,7 @@ pub fn run(
         ] {
             let params = PoseParams {
                 intrinsics,
-                initial_pose: PoseJson {
-                    rotation: case.start.rotation_rows(),
-                    translation: [
-                        case.start.translation.x,
-                        case.start.translation.y,
-                        case.start.translation.z,
-                    ],
-                },
+                initial_pose: PoseJson::from(&case.start),
                 model: None,
                 mask: Some(source),
                 max_iterations: None,
@@ -334,19 +328,6 @@ pub struct Summary {
     pub max_ms: f64,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// The summary of the outcomes of `method` (`obj`: one object, or all).
 pub fn summarize(outcomes: &[Outcome], method: &str, obj: Option<u32>) -> Option<Summary> {
     let o: Vec<&Outcome> = outcomes
@@ -357,12 +338,7 @@ pub fn summarize(outcomes: &[Outcome], method: &str, obj: Option<u32>) -> Option
         return None;
     }
     let n = o.len() as f64;
-    let mut mean = [0.0; 6];
-    for x in &o {
-        for (m, e) in mean.iter_mut().zip(x.errors) {
-            *m += e / n;
-        }
-    }
+    let mean = super::mean_errors(o.iter().map(|x| x.errors), o.len());
     let ms: Vec<f64> = o.iter().map(|x| x.ms).collect();
     Some(Summary {
         method: method.to_string(),

@@ -11,6 +11,7 @@ use std::time::Instant;
 use nalgebra::{Rotation3, Vector3};
 use serde::Serialize;
 
+use super::median;
 use crate::model::Model;
 use crate::pipeline::detect_image;
 use crate::pose::api::detect_options;
@@ -332,19 +333,6 @@ fn mean_and_se(v: &[f64]) -> (f64, f64) {
     (mean, (var / n).sqrt())
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// The summary of `method`'s outcomes.
 pub fn summarize(outcomes: &[Outcome], method: Method) -> Option<Summary> {
     let o: Vec<&Outcome> = outcomes.iter().filter(|o| o.method == method).collect();
@@ -352,12 +340,7 @@ pub fn summarize(outcomes: &[Outcome], method: Method) -> Option<Summary> {
         return None;
     }
     let n = o.len() as f64;
-    let mut mean = [0.0; 6];
-    for x in &o {
-        for (m, e) in mean.iter_mut().zip(x.errors) {
-            *m += e / n;
-        }
-    }
+    let mean = super::mean_errors(o.iter().map(|x| x.errors), o.len());
     let angles: Vec<f64> = o.iter().map(|x| x.angle_degrees).collect();
     let distances: Vec<f64> = o.iter().map(|x| x.distance_mm).collect();
     let (mean_angle_degrees, se_angle_degrees) = mean_and_se(&angles);

@@ -22,6 +22,16 @@ pub struct PoseJson {
     pub translation: [f64; 3],
 }
 
+impl From<&Pose> for PoseJson {
+    fn from(p: &Pose) -> Self {
+        let t = p.translation;
+        Self {
+            rotation: p.rotation_rows(),
+            translation: [t.x, t.y, t.z],
+        }
+    }
+}
+
 /// Where OR-IRLS takes its visibility mask from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -334,14 +344,11 @@ where
         &checked.irls,
         deadline,
     )?;
+    let pose = PoseJson::from(&r.pose);
     Ok(PoseResponse {
         pose: PoseOut {
-            rotation: r.pose.rotation_rows(),
-            translation: [
-                r.pose.translation.x,
-                r.pose.translation.y,
-                r.pose.translation.z,
-            ],
+            rotation: pose.rotation,
+            translation: pose.translation,
             quaternion: r.pose.quaternion(),
         },
         converged: r.converged,
