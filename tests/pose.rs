@@ -160,7 +160,12 @@ fn the_start_prior_holds_what_the_edges_cannot_see() {
 #[test]
 fn occluded_scenes_need_the_visibility_mask() {
     let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
-    let params = IrlsParams::default();
+    // Without the start prior, which also holds a plain IRLS fit near a
+    // good start and so hides part of what the mask does.
+    let params = IrlsParams {
+        start_sigma_degrees: 0.0,
+        ..IrlsParams::default()
+    };
     let edges = EdgeModel::new(&mesh, params.crease_degrees);
     let (mut with_mask, mut without) = (0, 0);
     let n = 16;
@@ -200,7 +205,8 @@ fn occluded_scenes_need_the_visibility_mask() {
         without += usize::from(b);
     }
     println!("converged: OR-IRLS {with_mask}/{n}, IRLS {without}/{n}");
-    // Measured: OR-IRLS 13/16, IRLS 6/16.
+    // Measured: OR-IRLS 13/16, IRLS 5/16 (with the default start prior
+    // 13/16 and 11/16).
     assert!(
         10 * with_mask as u64 >= 7 * n,
         "OR-IRLS converged {with_mask}/{n}"
