@@ -104,20 +104,12 @@ pub fn errors(est: &Pose, truth: &Pose, symmetries: &[Vec<f64>]) -> ([f64; 6], f
             rotation: truth.rotation * sr,
             translation: truth.rotation * st + truth.translation,
         };
-        let dt = est.translation - gt.translation;
-        let rel = Rotation3::from_matrix_unchecked(est.rotation * gt.rotation.transpose());
-        let (r, p, y) = rel.euler_angles();
-        let angle = rel.angle().to_degrees();
-        let e = [
-            dt.x.abs(),
-            dt.y.abs(),
-            dt.z.abs(),
-            r.to_degrees().abs(),
-            p.to_degrees().abs(),
-            y.to_degrees().abs(),
-        ];
+        let angle = Rotation3::from_matrix_unchecked(est.rotation * gt.rotation.transpose())
+            .angle()
+            .to_degrees();
         if best.as_ref().is_none_or(|b| angle < b.2) {
-            best = Some((e, dt.norm(), angle));
+            let e = super::six_errors_scaled(est, &gt, 1.0);
+            best = Some((e, (est.translation - gt.translation).norm(), angle));
         }
     }
     best.unwrap_or(([0.0; 6], 0.0, 0.0))

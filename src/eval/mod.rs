@@ -11,6 +11,28 @@ pub mod pose;
 
 pub use detection::*;
 
+/// The six errors of `est` against `truth`: the translation's difference
+/// per camera axis times `scale`, and the relative rotation `R_est
+/// R_trueᵀ` as roll, pitch and yaw about the camera's x, y and z axes
+/// (degrees), all absolute.
+pub fn six_errors_scaled(
+    est: &crate::pose::Pose,
+    truth: &crate::pose::Pose,
+    scale: f64,
+) -> [f64; 6] {
+    let dt = (est.translation - truth.translation) * scale;
+    let rel = nalgebra::Rotation3::from_matrix_unchecked(est.rotation * truth.rotation.transpose());
+    let (r, p, y) = rel.euler_angles();
+    [
+        dt.x.abs(),
+        dt.y.abs(),
+        dt.z.abs(),
+        r.to_degrees().abs(),
+        p.to_degrees().abs(),
+        y.to_degrees().abs(),
+    ]
+}
+
 /// The median of `v` (NaN when empty).
 pub fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {

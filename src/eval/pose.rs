@@ -236,20 +236,11 @@ pub struct Outcome {
 }
 
 /// The six errors of `est` against `truth`: the translation's difference
-/// per camera axis (mm), and the relative rotation `R_est R_trueᵀ` as
-/// roll, pitch and yaw about the camera's x, y and z axes (degrees).
+/// per camera axis (mm, the benchmark's poses being in metres), and the
+/// relative rotation `R_est R_trueᵀ` as roll, pitch and yaw about the
+/// camera's x, y and z axes (degrees).
 pub fn six_errors(est: &Pose, truth: &Pose) -> [f64; 6] {
-    let dt = (est.translation - truth.translation) * 1e3;
-    let rel = Rotation3::from_matrix_unchecked(est.rotation * truth.rotation.transpose());
-    let (r, p, y) = rel.euler_angles();
-    [
-        dt.x.abs(),
-        dt.y.abs(),
-        dt.z.abs(),
-        r.to_degrees().abs(),
-        p.to_degrees().abs(),
-        y.to_degrees().abs(),
-    ]
+    super::six_errors_scaled(est, truth, 1e3)
 }
 
 /// Refines the scene's start pose with each method.
