@@ -42,14 +42,15 @@ def main():
             st, js, err, _ = lmo_pose.post_pose(a.port, image, lmo.mesh_bytes(obj), dict(params, mask=mode),
                                                 mask if mode == "provided" else None, 60)
             if err is not None:
-                rows[method].append((-1.0, False, False, 99.0, 99.0, 99.0))
+                rows[method].append((-1.0, False, False, 99.0, 99.0, 99.0, -1.0))
                 continue
             R, t, _ = lmo_pose.parse_pose(js)
             e = lmo_pose.pose_errors(R, t, R_gt, t_gt, minfo["diameter"], lmo_pose.sym_transforms(minfo))
             import math
             cov = js["covariance"]
             srot = math.degrees(math.sqrt(max(cov[3][3] + cov[4][4] + cov[5][5], 0.0) / 3))
-            rows[method].append((js["score"], bool(e["success"]), bool(js["start_kept"]), srot, e["angle"], e["t"]))
+            rows[method].append((js["score"], bool(e["success"]), bool(js["start_kept"]), srot, e["angle"], e["t"],
+                                 js["score"] - js["start_score"]))
     for method, r in rows.items():
         n = len(r)
         kept = sum(1 for x in r if x[2])
@@ -60,6 +61,10 @@ def main():
             sel = [x[1] for x in r if x[0] >= cut]
             if sel:
                 print(f"  score >= {cut:.1f}: {len(sel):3d} answers, {100 * sum(sel) / len(sel):5.1f}% successes")
+        for cut in (0.0, 0.1, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5):
+            sel = [x[1] for x in r if x[6] >= cut]
+            if sel:
+                print(f"  score - start_score >= {cut:.2f}: {len(sel):3d} answers, {100 * sum(sel) / len(sel):5.1f}% successes")
 
 
 if __name__ == "__main__":

@@ -83,6 +83,8 @@ pub struct Outcome {
     pub failed: bool,
     pub ms: f64,
     pub score: f64,
+    /// The score of the start pose.
+    pub start_score: f64,
     pub start_kept: bool,
     pub converged: bool,
 }
@@ -226,7 +228,7 @@ pub fn run(
             cy: k[5],
         };
         let (_, t0, a0) = errors(&case.start, &case.truth, symmetries);
-        let outcome = |method, pose: &Pose, failed, ms, score, kept, conv| {
+        let outcome = |method, pose: &Pose, failed, ms, (score, start_score), kept, conv| {
             let (e, t, a) = errors(pose, &case.truth, symmetries);
             Outcome {
                 obj_id: inst.obj_id,
@@ -242,6 +244,7 @@ pub fn run(
                 failed,
                 ms,
                 score,
+                start_score,
                 start_kept: kept,
                 converged: conv,
             }
@@ -251,7 +254,7 @@ pub fn run(
             &case.start,
             false,
             0.0,
-            0.0,
+            (0.0, 0.0),
             true,
             false,
         ));
@@ -288,12 +291,12 @@ pub fn run(
                         &p,
                         false,
                         ms,
-                        resp.score,
+                        (resp.score, resp.start_score),
                         resp.start_kept,
                         resp.converged,
                     )
                 }
-                Err(_) => outcome(method, &case.start, true, ms, 0.0, true, false),
+                Err(_) => outcome(method, &case.start, true, ms, (0.0, 0.0), true, false),
             });
         }
         progress();

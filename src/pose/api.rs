@@ -112,6 +112,9 @@ pub struct PoseResponse {
     /// edge within 1.5 px (see the README for the cut-off measured on
     /// LM-O).
     pub score: f64,
+    /// The same share at the initial pose: how well the image supports the
+    /// client's start.
+    pub start_score: f64,
     /// No refined pose was supported better than the initial pose (by the
     /// MAP cost), so the initial pose is answered.
     pub start_kept: bool,
@@ -360,6 +363,7 @@ where
         mask_source: used,
         detection,
         score: r.agreement,
+        start_score: r.start_agreement,
         start_kept: r.start_kept,
     })
 }

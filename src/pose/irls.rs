@@ -479,6 +479,8 @@ pub struct PoseResult {
     /// compatible image edge within 1.5 px at the answered pose: how well
     /// the image supports it (see `Context::evidence`).
     pub agreement: f64,
+    /// The same share at the initial pose.
+    pub start_agreement: f64,
     /// The refinement found no pose the image supports better than the
     /// start (by the MAP cost), so the start is answered.
     pub start_kept: bool,
@@ -979,6 +981,7 @@ pub fn refine_until(
         samples,
         covariance,
         agreement: ev.agreement,
+        start_agreement: start_ev.agreement,
         start_kept,
     })
 }
