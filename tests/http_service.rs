@@ -815,10 +815,47 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
             "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: 100000\r\n\r\n--"
         );
         raw_call(&spec, &mut seen, path, &addr, head.clone(), 408).await;
+        // The server has released the connections of the round before
+        // (it sees a client's close only when it next reads).
+        for _ in 0..200 {
+            let text = reqwest::Client::new()
+                .get(server.url("/metrics"))
+                .send()
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
+            if metric(&text, "sdhop_http_connections_open") <= 4.0 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
         let idle: Vec<std::net::TcpStream> = (0..HttpConfig::default().connections.max_per_client)
             .map(|_| std::net::TcpStream::connect(&addr).unwrap())
             .collect();
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        // Until the server has taken every idle connection (a probe is
+        // refused), so that the next one is over the limit.
+        for _ in 0..100 {
+            let probe = addr.clone();
+            let line = tokio::task::spawn_blocking(move || {
+                use std::io::{Read, Write};
+                let mut s = std::net::TcpStream::connect(probe).unwrap();
+                s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+                let _ = s.write_all(
+                    b"GET /health/live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+                );
+                let mut buf = [0u8; 16];
+                let n = s.read(&mut buf).unwrap_or(0);
+                String::from_utf8_lossy(&buf[..n]).to_string()
+            })
+            .await
+            .unwrap();
+            if line.starts_with("HTTP/1.1 429") {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
         raw_call(&spec, &mut seen, path, &addr, head, 429).await;
         drop(idle);
         tokio::time::sleep(Duration::from_millis(100)).await;
