@@ -244,6 +244,9 @@ const EVIDENCE_RANGE_PX: f64 = 8.0;
 /// growing in the evidence (a robust, truncated quadratic).
 const EVIDENCE_CUT_PX: f64 = 3.0;
 
+/// Tracks closer than this (mean corner motion, pixels) merge.
+const MERGE_PX: f64 = 0.5;
+
 /// How well a pose's edges agree with the image (see `Context::evidence`).
 #[derive(Clone, Copy, Debug)]
 struct Evidence {
@@ -251,8 +254,6 @@ struct Evidence {
     samples: usize,
     agreement: f64,
 }
-/// Tracks closer than this (mean corner motion, pixels) merge.
-const MERGE_PX: f64 = 0.5;
 
 /// The largest search range (pixels each way).
 const MAX_RANGE: usize = 200;
@@ -530,20 +531,25 @@ fn growth(params: &IrlsParams, range: f64) -> usize {
 
 impl Context<'_> {
     /// The deviation of `pose` from the initial pose, `(t - t0, log(R
-    /// R0^T))`, and its derivative in the twist of [`Pose::updated`].
-    fn deviation(&self, pose: &Pose) -> (Vector6<f64>, Matrix6<f64>) {
+    /// R0^T))`.
+    fn deviation(&self, pose: &Pose) -> Vector6<f64> {
         let dt = pose.translation - self.initial.translation;
         let dr = nalgebra::Rotation3::from_matrix_unchecked(
             pose.rotation * self.initial.rotation.transpose(),
         )
         .scaled_axis();
-        let e = Vector6::new(dt.x, dt.y, dt.z, dr.x, dr.y, dr.z);
+        Vector6::new(dt.x, dt.y, dt.z, dr.x, dr.y, dr.z)
+    }
+
+    /// The derivative of [`Self::deviation`] in the twist of
+    /// [`Pose::updated`]: `[[I, -[t]x], [0, I]]`.
+    fn deviation_jacobian(pose: &Pose) -> Matrix6<f64> {
         let t = pose.translation;
         let mut jp = Matrix6::identity();
         // d(t')/dw = -[t]x (t' = t + w x t + v).
         let skew = nalgebra::Matrix3::new(0.0, t.z, -t.y, -t.z, 0.0, t.x, t.y, -t.x, 0.0);
         jp.fixed_view_mut::<3, 3>(0, 3).copy_from(&skew);
-        (e, jp)
+        jp
     }
 
     /// Image motion of the model's points under a twist, at the pose's depth.
@@ -626,7 +632,7 @@ impl Context<'_> {
     fn map_cost(&self, ev: &Evidence, pose: &Pose, n_ref: usize) -> f64 {
         let data = ev.mean * n_ref as f64 / self.params.sample_correlation;
         let prior = self.prior.map_or(0.0, |(st, sr)| {
-            let (e, _) = self.deviation(pose);
+            let e = self.deviation(pose);
             let t = e.fixed_rows::<3>(0).norm_squared() / (st * st);
             let r = e.fixed_rows::<3>(3).norm_squared() / (sr * sr);
             t + r
@@ -730,7 +736,7 @@ impl Context<'_> {
                 let scale = 1.0 / (sigma.max(1.0).powi(2) * params.sample_correlation);
                 h *= scale;
                 g *= scale;
-                let (e, jp) = self.deviation(&t.pose);
+                let (e, jp) = (self.deviation(&t.pose), Self::deviation_jacobian(&t.pose));
                 let lambda = Vector6::new(
                     1.0 / (sigma_t * sigma_t),
                     1.0 / (sigma_t * sigma_t),
