@@ -31,6 +31,11 @@ pub(crate) struct PoseEvalArgs {
     /// Only the main row (occluded, 5 degree / 10 mm starts).
     #[arg(long)]
     pub(crate) main_only: bool,
+    /// One row only: the occluded instances from starts this far,
+    /// "DEGREES,MM" (e.g. "0,0": started at the true pose, where a
+    /// refinement should stay).
+    #[arg(long)]
+    pub(crate) start: Option<String>,
     /// Send each row's start distance as the request's start_uncertainty
     /// (as a client that knows how good its start is); default: the
     /// service's default uncertainty (5 degrees, 5% of the mesh's
@@ -77,7 +82,19 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         prior_from_start: args.prior_from_start,
     };
     let mut rows = vec![row("occluded, 5 deg / 10 mm starts", (lo, hi), 5.0, 10.0)];
-    if !args.main_only {
+    if let Some(text) = &args.start {
+        let (d, mm) = text
+            .split_once(',')
+            .and_then(|(a, b)| Some((a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?)))
+            .filter(|(d, mm)| d.is_finite() && mm.is_finite() && *d >= 0.0 && *mm >= 0.0)
+            .ok_or_else(|| Failure::input(format!("--start {text:?}: expected DEGREES,MM")))?;
+        rows = vec![row(
+            &format!("occluded, {d} deg / {mm} mm starts"),
+            (lo, hi),
+            d,
+            mm,
+        )];
+    } else if !args.main_only {
         rows.push(row(
             "nearly unoccluded (visib >= 0.8), 5 deg / 10 mm",
             (0.8, 1.0),

@@ -79,6 +79,12 @@ pub struct Outcome {
     pub success: bool,
     /// No worse than the start in both |t| and angle.
     pub no_worse: bool,
+    /// The mean distance of the mesh's points between the answered and
+    /// the true pose (ADD; for a symmetric object the least over its
+    /// symmetric true poses), mesh units.
+    pub add: f64,
+    /// No worse than the start by ADD.
+    pub no_worse_add: bool,
     /// The request failed (the start is scored).
     pub failed: bool,
     pub ms: f64,
@@ -87,6 +93,13 @@ pub struct Outcome {
     pub start_score: f64,
     pub start_kept: bool,
     pub converged: bool,
+    /// The answered pose.
+    pub pose: PoseJson,
+    /// The response's region scores (answered, start) and the standard
+    /// deviations of its rotation (degrees) and translation from the
+    /// covariance.
+    pub region: (f64, f64),
+    pub sigma: (f64, f64),
 }
 
 /// The errors of `est` against `truth` (or the symmetric pose of `truth`
@@ -106,15 +119,57 @@ pub fn errors(est: &Pose, truth: &Pose, symmetries: &[Vec<f64>]) -> ([f64; 6], f
             rotation: truth.rotation * sr,
             translation: truth.rotation * st + truth.translation,
         };
-        let angle = Rotation3::from_matrix_unchecked(est.rotation * gt.rotation.transpose())
-            .angle()
-            .to_degrees();
+        // The angle from the trace, clamped: nalgebra's `angle` is NaN for
+        // a rotation a rounding error from the identity.
+        let cos = 0.5 * ((est.rotation * gt.rotation.transpose()).trace() - 1.0);
+        let angle = cos.clamp(-1.0, 1.0).acos().to_degrees();
         if best.as_ref().is_none_or(|b| angle < b.2) {
             let e = super::six_errors_scaled(est, &gt, 1.0);
             best = Some((e, (est.translation - gt.translation).norm(), angle));
         }
     }
     best.unwrap_or(([0.0; 6], 0.0, 0.0))
+}
+
+/// The standard deviations of a twist covariance's rotation (degrees,
+/// root of the trace of its block) and translation (mesh units).
+fn sigmas(cov: &[[f64; 6]; 6]) -> (f64, f64) {
+    let t = (0..3).map(|i| cov[i][i]).sum::<f64>().max(0.0).sqrt();
+    let r = (3..6).map(|i| cov[i][i]).sum::<f64>().max(0.0).sqrt();
+    (r.to_degrees(), t)
+}
+
+/// The symmetric poses of `truth` (itself first): `symmetries` are BOP's
+/// discrete ones, 4x4 row-major; malformed ones are skipped.
+fn symmetric_truths(truth: &Pose, symmetries: &[Vec<f64>]) -> Vec<Pose> {
+    let mut out = vec![*truth];
+    for s in symmetries.iter().filter(|s| s.len() == 16) {
+        let sr = Matrix3::new(s[0], s[1], s[2], s[4], s[5], s[6], s[8], s[9], s[10]);
+        let st = Vector3::new(s[3], s[7], s[11]);
+        out.push(Pose {
+            rotation: truth.rotation * sr,
+            translation: truth.rotation * st + truth.translation,
+        });
+    }
+    out
+}
+
+/// ADD: the mean distance of `points` between `est` and `truth`, the
+/// least over the symmetric poses of `truth`.
+pub fn add(est: &Pose, truth: &Pose, symmetries: &[Vec<f64>], points: &[Vector3<f64>]) -> f64 {
+    if points.is_empty() {
+        return 0.0;
+    }
+    symmetric_truths(truth, symmetries)
+        .iter()
+        .map(|gt| {
+            points
+                .iter()
+                .map(|p| (est.transform(p) - gt.transform(p)).norm())
+                .sum::<f64>()
+                / points.len() as f64
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// A unit vector uniform on the sphere.
@@ -228,27 +283,41 @@ pub fn run(
             cy: k[5],
         };
         let (_, t0, a0) = errors(&case.start, &case.truth, symmetries);
-        let outcome = |method, pose: &Pose, failed, ms, (score, start_score), kept, conv| {
-            let (e, t, a) = errors(pose, &case.truth, symmetries);
-            Outcome {
-                obj_id: inst.obj_id,
-                im_id: im.id,
-                k: inst.k,
-                visib_fract: inst.visib_fract,
-                method,
-                errors: e,
-                t,
-                angle: a,
-                success: t < 0.1 * diameter && a < 5.0 - 1e-6,
-                no_worse: t <= t0 + 1e-9 && a <= a0 + 1e-9,
-                failed,
-                ms,
-                score,
-                start_score,
-                start_kept: kept,
-                converged: conv,
-            }
-        };
+        // At most about 2000 of the mesh's vertices, evenly.
+        let points: Vec<Vector3<f64>> = meshes.get(&inst.obj_id).map_or(Vec::new(), |m| {
+            let stride = m.vertices.len().div_ceil(2000).max(1);
+            m.vertices.iter().step_by(stride).copied().collect()
+        });
+        let add0 = add(&case.start, &case.truth, symmetries, &points);
+        let outcome =
+            |method, pose: &Pose, failed, ms, (score, start_score), kept, conv, region, sigma| {
+                let answered = PoseJson::from(pose);
+                let (e, t, a) = errors(pose, &case.truth, symmetries);
+                let d = add(pose, &case.truth, symmetries, &points);
+                Outcome {
+                    obj_id: inst.obj_id,
+                    im_id: im.id,
+                    k: inst.k,
+                    visib_fract: inst.visib_fract,
+                    method,
+                    errors: e,
+                    t,
+                    angle: a,
+                    success: t < 0.1 * diameter && a < 5.0 - 1e-6,
+                    no_worse: t <= t0 + 1e-9 && a <= a0 + 1e-9,
+                    add: d,
+                    no_worse_add: d <= add0 + 1e-9,
+                    failed,
+                    ms,
+                    score,
+                    start_score,
+                    start_kept: kept,
+                    converged: conv,
+                    pose: answered,
+                    region,
+                    sigma,
+                }
+            };
         out.push(outcome(
             "initial",
             &case.start,
@@ -257,6 +326,8 @@ pub fn run(
             (0.0, 0.0),
             true,
             false,
+            (0.0, 0.0),
+            (0.0, 0.0),
         ));
         let Some(mesh) = meshes.get(&inst.obj_id) else {
             continue;
@@ -294,9 +365,21 @@ pub fn run(
                         (resp.score, resp.start_score),
                         resp.start_kept,
                         resp.converged,
+                        (resp.region_score, resp.start_region_score),
+                        sigmas(&resp.covariance),
                     )
                 }
-                Err(_) => outcome(method, &case.start, true, ms, (0.0, 0.0), true, false),
+                Err(_) => outcome(
+                    method,
+                    &case.start,
+                    true,
+                    ms,
+                    (0.0, 0.0),
+                    true,
+                    false,
+                    (0.0, 0.0),
+                    (0.0, 0.0),
+                ),
             });
         }
         progress();
@@ -317,6 +400,8 @@ pub struct Summary {
     pub median_angle: f64,
     pub success: f64,
     pub no_worse: f64,
+    pub mean_add: f64,
+    pub no_worse_add: f64,
     pub failed: usize,
     pub start_kept: usize,
     pub median_ms: f64,
@@ -345,6 +430,8 @@ pub fn summarize(outcomes: &[Outcome], method: &str, obj: Option<u32>) -> Option
         median_angle: median(o.iter().map(|x| x.angle).collect()),
         success: o.iter().filter(|x| x.success).count() as f64 / n,
         no_worse: o.iter().filter(|x| x.no_worse).count() as f64 / n,
+        mean_add: o.iter().map(|x| x.add).sum::<f64>() / n,
+        no_worse_add: o.iter().filter(|x| x.no_worse_add).count() as f64 / n,
         failed: o.iter().filter(|x| x.failed).count(),
         start_kept: o.iter().filter(|x| x.start_kept).count(),
         median_ms: median(ms.clone()),
@@ -361,7 +448,7 @@ pub fn table(title: &str, outcomes: &[Outcome], obj: Option<u32>) -> String {
     let n = s[0].as_ref().map_or(0, |x| x.n);
     let mut out = format!("{title} (n={n})\n                     initial      IRLS   OR-IRLS\n");
     type Column = (&'static str, fn(&Summary) -> f64);
-    let rows: [Column; 15] = [
+    let rows: [Column; 17] = [
         ("X", |x| x.mean_errors[0]),
         ("Y", |x| x.mean_errors[1]),
         ("Z", |x| x.mean_errors[2]),
@@ -372,6 +459,8 @@ pub fn table(title: &str, outcomes: &[Outcome], obj: Option<u32>) -> String {
         ("angle (deg)", |x| x.mean_angle),
         ("success (%)", |x| 100.0 * x.success),
         ("no worse (%)", |x| 100.0 * x.no_worse),
+        ("ADD", |x| x.mean_add),
+        ("ADD no worse (%)", |x| 100.0 * x.no_worse_add),
         ("median |t|", |x| x.median_t),
         ("median angle", |x| x.median_angle),
         ("start kept", |x| x.start_kept as f64),
@@ -415,6 +504,9 @@ mod tests {
                 * Rotation3::from_euler_angles(0.0, 0.0, std::f64::consts::PI).into_inner(),
             translation: truth.translation,
         };
+        // At the truth itself: zero, not NaN.
+        let (_, t, angle) = errors(&truth, &truth, &[]);
+        assert!(t == 0.0 && angle.abs() < 1e-6, "{t} {angle}");
         let (_, t, angle) = errors(&flipped, &truth, &[flip]);
         assert!(t < 1e-9 && angle < 1e-6, "{t} {angle}");
         let (_, _, angle) = errors(&flipped, &truth, &[]);

@@ -118,6 +118,11 @@ pub struct PoseResponse {
     /// No refined pose was supported better than the initial pose (by the
     /// MAP cost), so the initial pose is answered.
     pub start_kept: bool,
+    /// The share of the answered pose's outline samples (in the mask)
+    /// where the object's and the background's colours change within
+    /// 1.5 px of the outline, and the same at the initial pose.
+    pub region_score: f64,
+    pub start_region_score: f64,
 }
 
 /// The least IoU of a detection's box with the box of the mesh at the
@@ -365,6 +370,8 @@ where
         score: r.agreement,
         start_score: r.start_agreement,
         start_kept: r.start_kept,
+        region_score: r.region_agreement,
+        start_region_score: r.start_region_agreement,
     })
 }
 

@@ -10,6 +10,7 @@ pub mod edges;
 pub mod geometry;
 pub mod irls;
 pub mod mesh;
+pub mod region;
 pub mod render;
 
 use thiserror::Error;
