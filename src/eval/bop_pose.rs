@@ -23,7 +23,7 @@ use super::median;
 use crate::data::bop::{Bop, BopImage, Instance};
 use crate::data::load_image;
 use crate::pose::api::{
-    estimate, mask_from_image, MaskSource, PoseJson, PoseParams, StartUncertainty,
+    estimate, mask_from_image, MaskSource, PoseJson, PoseParams, PoseResponse, StartUncertainty,
 };
 use crate::pose::geometry::nearest_rotation;
 use crate::pose::{Intrinsics, Mesh, Pose, PoseError};
@@ -289,46 +289,40 @@ pub fn run(
             m.vertices.iter().step_by(stride).copied().collect()
         });
         let add0 = add(&case.start, &case.truth, symmetries, &points);
-        let outcome =
-            |method, pose: &Pose, failed, ms, (score, start_score), kept, conv, region, sigma| {
-                let answered = PoseJson::from(pose);
-                let (e, t, a) = errors(pose, &case.truth, symmetries);
-                let d = add(pose, &case.truth, symmetries, &points);
-                Outcome {
-                    obj_id: inst.obj_id,
-                    im_id: im.id,
-                    k: inst.k,
-                    visib_fract: inst.visib_fract,
-                    method,
-                    errors: e,
-                    t,
-                    angle: a,
-                    success: t < 0.1 * diameter && a < 5.0 - 1e-6,
-                    no_worse: t <= t0 + 1e-9 && a <= a0 + 1e-9,
-                    add: d,
-                    no_worse_add: d <= add0 + 1e-9,
-                    failed,
-                    ms,
-                    score,
-                    start_score,
-                    start_kept: kept,
-                    converged: conv,
-                    pose: answered,
-                    region,
-                    sigma,
-                }
-            };
-        out.push(outcome(
-            "initial",
-            &case.start,
-            false,
-            0.0,
-            (0.0, 0.0),
-            true,
-            false,
-            (0.0, 0.0),
-            (0.0, 0.0),
-        ));
+        // The outcome of an answer (`None`: the start, or a failed
+        // request, which is scored as the start).
+        let outcome = |method, resp: Option<&PoseResponse>, failed, ms| {
+            let pose = resp.map_or(case.start, |r| Pose {
+                rotation: Matrix3::from_fn(|i, j| r.pose.rotation[i][j]),
+                translation: Vector3::from(r.pose.translation),
+            });
+            let (e, t, a) = errors(&pose, &case.truth, symmetries);
+            let d = add(&pose, &case.truth, symmetries, &points);
+            Outcome {
+                obj_id: inst.obj_id,
+                im_id: im.id,
+                k: inst.k,
+                visib_fract: inst.visib_fract,
+                method,
+                errors: e,
+                t,
+                angle: a,
+                success: t < 0.1 * diameter && a < 5.0 - 1e-6,
+                no_worse: t <= t0 + 1e-9 && a <= a0 + 1e-9,
+                add: d,
+                no_worse_add: d <= add0 + 1e-9,
+                failed,
+                ms,
+                score: resp.map_or(0.0, |r| r.score),
+                start_score: resp.map_or(0.0, |r| r.start_score),
+                start_kept: resp.is_none_or(|r| r.start_kept),
+                converged: resp.is_some_and(|r| r.converged),
+                pose: PoseJson::from(&pose),
+                region: resp.map_or((0.0, 0.0), |r| (r.region_score, r.start_region_score)),
+                sigma: resp.map_or((0.0, 0.0), |r| sigmas(&r.covariance)),
+            }
+        };
+        out.push(outcome("initial", None, false, 0.0));
         let Some(mesh) = meshes.get(&inst.obj_id) else {
             continue;
         };
@@ -352,34 +346,8 @@ pub fn run(
             let r: Result<_, PoseError> = estimate(&img, mesh, &params, m, &[]);
             let ms = t.elapsed().as_secs_f64() * 1e3;
             out.push(match r {
-                Ok(resp) => {
-                    let p = Pose {
-                        rotation: Matrix3::from_fn(|r, c| resp.pose.rotation[r][c]),
-                        translation: Vector3::from(resp.pose.translation),
-                    };
-                    outcome(
-                        method,
-                        &p,
-                        false,
-                        ms,
-                        (resp.score, resp.start_score),
-                        resp.start_kept,
-                        resp.converged,
-                        (resp.region_score, resp.start_region_score),
-                        sigmas(&resp.covariance),
-                    )
-                }
-                Err(_) => outcome(
-                    method,
-                    &case.start,
-                    true,
-                    ms,
-                    (0.0, 0.0),
-                    true,
-                    false,
-                    (0.0, 0.0),
-                    (0.0, 0.0),
-                ),
+                Ok(resp) => outcome(method, Some(&resp), false, ms),
+                Err(_) => outcome(method, None, true, ms),
             });
         }
         progress();
