@@ -137,6 +137,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let rp = RefineParams {
                     fill: *fill,
                     clear: *clear,
+                    ..RefineParams::default()
                 };
                 ref_acc[vi][0] += err(&refine_mask(&oraw, &d.grid, &seg, &rp), truth);
                 ref_acc[vi][1] += err(&refine_mask(&raw, &d.grid, &seg, &rp), truth);

@@ -4,7 +4,12 @@
 //! Tensors, for viewpoint `a` (all `F32`):
 //! `view{a}.w_vis` `[rows, cols, 31]`, `view{a}.w_occ` `[rows, cols, 31]`,
 //! `view{a}.w_prior` `[rows, cols]`, `view{a}.w_hop` `[K + 1]`,
-//! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`.
+//! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`, and from format 2 on,
+//! where the trainer learned one, `view{a}.shape` `[rows * cell_size, cols
+//! * cell_size]`: the viewpoint's pixel shape model
+//! ([`crate::vision::shape`]), and `view{a}.colours` `[512]`: the object's
+//! colour histogram from the training images. Format 1 files (no shape
+//! models) still load.
 //! The safetensors metadata holds one key, `sdhop`, whose value is the JSON
 //! of [`ModelMeta`].
 
@@ -20,10 +25,13 @@ use crate::vision::energy::{PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use crate::vision::pyramid::PyramidParams;
 use crate::vision::segment::SegmentParams;
+use crate::vision::shape::{ShapeModel, COLOUR_BINS};
 use crate::vision::VisionError;
 
-/// Version of the weights format this build reads and writes.
-pub const FORMAT_VERSION: u32 = 1;
+/// Version of the weights format this build writes.
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest version this build reads.
+pub const MIN_FORMAT_VERSION: u32 = 1;
 /// Metadata key of the JSON description.
 pub const META_KEY: &str = "sdhop";
 /// Largest template side in cells a file may declare.
@@ -44,7 +52,7 @@ pub enum ModelError {
     MissingMeta,
     #[error("bad metadata: {0}")]
     Meta(String),
-    #[error("unsupported format version {found} (this build reads {FORMAT_VERSION})")]
+    #[error("unsupported format version {found} (this build reads {MIN_FORMAT_VERSION} to {FORMAT_VERSION})")]
     Version { found: u32 },
     #[error("missing tensor `{0}`")]
     MissingTensor(String),
@@ -95,11 +103,13 @@ pub struct ModelMeta {
     pub provenance: serde_json::Value,
 }
 
-/// A model: metadata and one weight set per viewpoint.
+/// A model: metadata, one weight set per viewpoint, and per viewpoint its
+/// pixel shape model where one was learned.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Model {
     pub meta: ModelMeta,
     pub views: Vec<ViewWeights>,
+    pub shapes: Vec<Option<ShapeModel>>,
 }
 
 fn f32_bytes(v: impl Iterator<Item = f32>) -> Vec<u8> {
@@ -115,9 +125,29 @@ fn strip(padded: &[f32]) -> impl Iterator<Item = f32> + '_ {
 impl Model {
     /// Builds a model and checks it.
     pub fn new(meta: ModelMeta, views: Vec<ViewWeights>) -> Result<Self, ModelError> {
-        let m = Self { meta, views };
+        let shapes = vec![None; views.len()];
+        let m = Self {
+            meta,
+            views,
+            shapes,
+        };
         m.validate()?;
         Ok(m)
+    }
+
+    /// The model with these shape models (one per viewpoint); the file it
+    /// writes is of the current format.
+    pub fn with_shapes(mut self, shapes: Vec<Option<ShapeModel>>) -> Result<Self, ModelError> {
+        self.shapes = shapes;
+        self.meta.format_version = FORMAT_VERSION;
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// The pixel size `(width, height)` of viewpoint `a`'s shape model.
+    pub fn shape_size(&self, a: usize) -> (usize, usize) {
+        let v = &self.meta.viewpoints[a];
+        (v.cols * self.meta.cell_size, v.rows * self.meta.cell_size)
     }
 
     /// Distinct object labels, in viewpoint order.
@@ -134,10 +164,17 @@ impl Model {
     /// Checks the metadata against the weights and the weights themselves.
     pub fn validate(&self) -> Result<(), ModelError> {
         let m = &self.meta;
-        if m.format_version != FORMAT_VERSION {
+        if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&m.format_version) {
             return Err(ModelError::Version {
                 found: m.format_version,
             });
+        }
+        if self.shapes.len() != self.views.len() {
+            return Err(ModelError::Invalid(format!(
+                "{} shape model slots for {} viewpoints",
+                self.shapes.len(),
+                self.views.len()
+            )));
         }
         if m.cell_size != CELL_SIZE {
             return Err(ModelError::Invalid(format!(
@@ -181,6 +218,20 @@ impl Model {
                 )));
             }
             w.validate()?;
+            if let Some(Some(s)) = self.shapes.get(a) {
+                let (sw, sh) = (vm.cols * m.cell_size, vm.rows * m.cell_size);
+                if !s.valid() || (s.width, s.height) != (sw, sh) {
+                    return Err(ModelError::Invalid(format!(
+                        "viewpoint {a}: shape model {}x{} (expected {sw}x{sh}, probabilities in [0, 1])",
+                        s.width, s.height
+                    )));
+                }
+                if m.format_version < 2 {
+                    return Err(ModelError::Invalid(
+                        "shape models need format version 2".into(),
+                    ));
+                }
+            }
         }
         m.pyramid.validate()?;
         m.segmentation.validate()?;
@@ -219,6 +270,20 @@ impl Model {
                 vec![3],
                 f32_bytes([w.w_trunc, w.w_pair, w.bias].into_iter()),
             ));
+            if let Some(Some(s)) = self.shapes.get(a) {
+                buffers.push((
+                    format!("view{a}.shape"),
+                    vec![s.height, s.width],
+                    f32_bytes(s.prob.iter().copied()),
+                ));
+                if let Some(c) = &s.colours {
+                    buffers.push((
+                        format!("view{a}.colours"),
+                        vec![c.len()],
+                        f32_bytes(c.iter().copied()),
+                    ));
+                }
+            }
         }
         let views: Vec<(String, TensorView<'_>)> = buffers
             .iter()
@@ -245,7 +310,7 @@ impl Model {
             .ok_or(ModelError::MissingMeta)?;
         let meta: ModelMeta =
             serde_json::from_str(meta_json).map_err(|e| ModelError::Meta(e.to_string()))?;
-        if meta.format_version != FORMAT_VERSION {
+        if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&meta.format_version) {
             return Err(ModelError::Version {
                 found: meta.format_version,
             });
@@ -300,7 +365,37 @@ impl Model {
                 bias: s[2],
             });
         }
-        Self::new(meta, views)
+        let mut shapes = Vec::with_capacity(views.len());
+        for (a, vm) in meta.viewpoints.iter().enumerate() {
+            let name = format!("view{a}.shape");
+            let (sw, sh) = (
+                vm.cols.saturating_mul(meta.cell_size),
+                vm.rows.saturating_mul(meta.cell_size),
+            );
+            shapes.push(if st.tensor(&name).is_ok() {
+                let colours_name = format!("view{a}.colours");
+                let colours = if st.tensor(&colours_name).is_ok() {
+                    Some(read(&colours_name, vec![COLOUR_BINS.pow(3)])?)
+                } else {
+                    None
+                };
+                Some(ShapeModel {
+                    width: sw,
+                    height: sh,
+                    prob: read(&name, vec![sh, sw])?,
+                    colours,
+                })
+            } else {
+                None
+            });
+        }
+        let m = Self {
+            meta,
+            views,
+            shapes,
+        };
+        m.validate()?;
+        Ok(m)
     }
 
     /// Writes the model to a file (atomically: a temporary file is renamed).
@@ -373,6 +468,38 @@ mod tests {
         m.save(&p).unwrap();
         assert_eq!(Model::load(&p).unwrap(), m);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn shape_models_round_trip_and_format_1_files_still_load() {
+        let m = sample();
+        let shape = ShapeModel {
+            width: 3 * CELL_SIZE,
+            height: 2 * CELL_SIZE,
+            prob: (0..6 * CELL_SIZE * CELL_SIZE)
+                .map(|i| (i % 7) as f32 / 7.0)
+                .collect(),
+            colours: Some((0..512).map(|i| (i % 3) as f32 / 512.0).collect()),
+        };
+        let with = m.clone().with_shapes(vec![Some(shape.clone())]).unwrap();
+        let back = Model::from_bytes(&with.to_bytes().unwrap()).unwrap();
+        assert_eq!(back.shapes, vec![Some(shape.clone())]);
+        assert_eq!(back.meta.format_version, FORMAT_VERSION);
+        // A format 1 file (written before shape models): loads, no shapes.
+        let mut old = m.clone();
+        old.meta.format_version = 1;
+        let back = Model::from_bytes(&old.to_bytes().unwrap()).unwrap();
+        assert_eq!(back.shapes, vec![None]);
+        assert_eq!(back.meta.format_version, 1);
+        // A shape of the wrong size or with probabilities out of range.
+        let wrong = ShapeModel {
+            width: 5,
+            ..shape.clone()
+        };
+        assert!(m.clone().with_shapes(vec![Some(wrong)]).is_err());
+        let mut out_of_range = shape;
+        out_of_range.prob[0] = 1.5;
+        assert!(m.with_shapes(vec![Some(out_of_range)]).is_err());
     }
 
     #[test]

@@ -297,7 +297,8 @@ fn run_model(
         let (raw, refined) = if opts.masks == MaskMode::None {
             (None, None)
         } else {
-            let (raw, refined) = detection_masks(&d, pyr, &params.refine);
+            let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+            let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
             let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
             let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
             (

@@ -58,6 +58,7 @@ fn shipped_models_localize_a_fixed_ko8_subset() {
         EvalDetect {
             max_detections: 20,
             threshold: None,
+            pixel: None,
         },
     )
     .unwrap();

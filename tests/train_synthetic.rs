@@ -103,6 +103,12 @@ fn training_learns_to_detect_and_segment_held_out_scenes() {
     let bytes = model.to_bytes().unwrap();
     let loaded = Model::from_bytes(&bytes).unwrap();
     assert_eq!(loaded, model);
+    // Training learned each viewpoint's pixel shape model and colours.
+    for (a, shape) in loaded.shapes.iter().enumerate() {
+        let shape = shape.as_ref().expect("a shape model per viewpoint");
+        assert_eq!((shape.width, shape.height), loaded.shape_size(a));
+        assert!(shape.colours.is_some());
+    }
     for v in &loaded.views {
         assert!(v.w_pair >= 0.0);
         let hop: Vec<f64> = v.w_hop.iter().map(|&x| f64::from(x)).collect();

@@ -233,3 +233,41 @@ impl PoseBackgrounds {
         Ok((objects, files, test))
     }
 }
+
+/// `--pixel-refine`: "off", or the weights
+/// "SHAPE,CELLS,SEGMENTS,BIAS,SMOOTHNESS[,COLOUR]".
+pub(crate) fn parse_pixel_refine(text: &str) -> Result<PixelRefine, Failure> {
+    if text.trim() == "off" {
+        return Ok(PixelRefine {
+            enabled: false,
+            ..PixelRefine::default()
+        });
+    }
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| Failure::input(format!("--pixel-refine {text:?}: {e}")))?;
+    let (shape, cells, segments, bias, smoothness, colour) = match v[..] {
+        [a, b, c, d, e] => (a, b, c, d, e, 0.0),
+        [a, b, c, d, e, f] => (a, b, c, d, e, f),
+        _ => {
+            return Err(Failure::input(format!(
+                "--pixel-refine {text:?}: expected off or SHAPE,CELLS,SEGMENTS,BIAS,SMOOTHNESS[,COLOUR]"
+            )))
+        }
+    };
+    let p = PixelRefine {
+        enabled: true,
+        shape,
+        cells,
+        segments,
+        bias,
+        smoothness,
+        colour,
+        ..PixelRefine::default()
+    };
+    p.validate()
+        .map_err(|e| Failure::input(format!("--pixel-refine {text:?}: {e}")))?;
+    Ok(p)
+}

@@ -39,6 +39,11 @@ pub(crate) struct CvArgs {
     /// --threshold-tolerance of the best is chosen.
     #[arg(long, allow_negative_numbers = true)]
     pub(crate) detect_threshold: Option<f64>,
+    /// Pixel refinement of the masks for this evaluation, overriding the
+    /// models': "off" (segment snapping alone) or the weights
+    /// "SHAPE,CELLS,SEGMENTS,BIAS,SMOOTHNESS" (0 drops a source).
+    #[arg(long, value_name = "off|S,C,G,B,P")]
+    pub(crate) pixel_refine: Option<String>,
     /// How much of the selection figure (mean cross-object AUC less a tenth
     /// of the refined segmentation error) a higher, faster threshold may
     /// give up.
@@ -126,6 +131,11 @@ pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
         let how = EvalDetect {
             max_detections: args.max_detections,
             threshold: args.detect_threshold,
+            pixel: args
+                .pixel_refine
+                .as_deref()
+                .map(parse_pixel_refine)
+                .transpose()?,
         };
         let cv = cross_validate(
             &data,

@@ -24,6 +24,11 @@ pub(crate) struct EvalArgs {
     /// Detection threshold (default: each model's own).
     #[arg(long, allow_negative_numbers = true)]
     pub(crate) detect_threshold: Option<f64>,
+    /// Pixel refinement of the masks for this evaluation, overriding the
+    /// models': "off" (segment snapping alone) or the weights
+    /// "SHAPE,CELLS,SEGMENTS,BIAS,SMOOTHNESS" (0 drops a source).
+    #[arg(long, value_name = "off|S,C,G,B,P")]
+    pub(crate) pixel_refine: Option<String>,
 }
 
 pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
@@ -46,6 +51,11 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     let how = EvalDetect {
         max_detections: args.max_detections,
         threshold: args.detect_threshold,
+        pixel: args
+            .pixel_refine
+            .as_deref()
+            .map(parse_pixel_refine)
+            .transpose()?,
     };
     let responses = detect_all(&images, &refs, &cache, how).map_err(Failure::input)?;
     let evaluation = score(&data, &images, &responses);

@@ -38,6 +38,7 @@ use crate::vision::detect::box_iou;
 use crate::vision::energy::PairwiseMode;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
+use crate::vision::refine::PixelRefine;
 
 use annotate::*;
 use args::*;

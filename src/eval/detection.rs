@@ -33,6 +33,14 @@ pub struct ObjectScore {
     /// Mean `1 - IoU` of the top detection's refined mask (1 if none).
     pub seg_error_refined: f64,
     pub seg_error_raw: f64,
+    /// The Pascal VOC segmentation error (the paper's figure, `VOC=1` of
+    /// `ko8_eval.py`): pixel counts of the top detection's mask summed over
+    /// the object's images, `1 - (IoU of the object + IoU of the
+    /// background) / 2`.
+    #[serde(default)]
+    pub voc_error_refined: f64,
+    #[serde(default)]
+    pub voc_error_raw: f64,
     /// Recall-FPPI curves on the 1001-point grid (own images, cross).
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub curve: Vec<f64>,
@@ -47,6 +55,10 @@ pub struct MeanScore {
     pub auc_cross: f64,
     pub seg_error_refined: f64,
     pub seg_error_raw: f64,
+    #[serde(default)]
+    pub voc_error_refined: f64,
+    #[serde(default)]
+    pub voc_error_raw: f64,
 }
 
 /// The FPPI grid of the scorer: 1001 points over [0, 1].
@@ -93,9 +105,10 @@ fn box_of(d: &DetectionJson) -> (f64, f64, f64, f64) {
     (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height)
 }
 
-/// `1 - IoU` of a detection's mask with the visible ground truth; 1 when
-/// the detection carries no such mask.
-fn seg_error(det: Option<&DetectionJson>, truth: &Mask, raw: bool) -> f64 {
+/// `1 - IoU` of a detection's mask with the visible ground truth (1 when
+/// the detection carries no such mask), and the pixel counts TP, FP, FN,
+/// TN of the mask (an empty mask when none) for the VOC error.
+fn seg_error(det: Option<&DetectionJson>, truth: &Mask, raw: bool) -> (f64, [u64; 4]) {
     let rle = det.and_then(|d| {
         if raw {
             d.raw_mask.as_ref()
@@ -103,10 +116,41 @@ fn seg_error(det: Option<&DetectionJson>, truth: &Mask, raw: bool) -> f64 {
             d.mask.as_ref()
         }
     });
-    match rle.and_then(Mask::from_rle) {
-        Some(m) if m.width == truth.width && m.height == truth.height => 1.0 - m.iou(truth),
-        _ => 1.0,
+    let m = rle
+        .and_then(Mask::from_rle)
+        .filter(|m| m.width == truth.width && m.height == truth.height);
+    let mut counts = [0u64; 4];
+    for (i, &t) in truth.data.iter().enumerate() {
+        let p = m.as_ref().is_some_and(|m| m.data[i] != 0);
+        let k = match (p, t != 0) {
+            (true, true) => 0,
+            (true, false) => 1,
+            (false, true) => 2,
+            (false, false) => 3,
+        };
+        counts[k] += 1;
     }
+    let err = match &m {
+        Some(m) => 1.0 - m.iou(truth),
+        None => 1.0,
+    };
+    (err, counts)
+}
+
+/// The VOC segmentation error of summed pixel counts TP, FP, FN, TN.
+fn voc_error(c: &[u64; 4]) -> f64 {
+    let [tp, fp, fn_, tn] = c.map(|v| v as f64);
+    let obj = if tp + fp + fn_ > 0.0 {
+        tp / (tp + fp + fn_)
+    } else {
+        0.0
+    };
+    let bg = if tn + fp + fn_ > 0.0 {
+        tn / (tn + fp + fn_)
+    } else {
+        0.0
+    };
+    1.0 - 0.5 * (obj + bg)
 }
 
 /// Scores one object over the evaluated images. Images whose truth is
@@ -121,6 +165,7 @@ pub fn score_object(object: &str, images: &[Evaluated]) -> ObjectScore {
     let mut n_all = 0;
     let mut seg_refined = Vec::new();
     let mut seg_raw = Vec::new();
+    let (mut voc_refined, mut voc_raw) = ([0u64; 4], [0u64; 4]);
     for (idx, e) in images.iter().enumerate() {
         let Some(t) = e.truth else { continue };
         n_all += 1;
@@ -134,8 +179,16 @@ pub fn score_object(object: &str, images: &[Evaluated]) -> ObjectScore {
                 own.push((d.score, idx, iou));
                 cross.push((d.score, idx, iou));
             }
-            seg_refined.push(seg_error(dets.first().copied(), &t.visible, false));
-            seg_raw.push(seg_error(dets.first().copied(), &t.visible, true));
+            for (raw, seg, voc) in [
+                (false, &mut seg_refined, &mut voc_refined),
+                (true, &mut seg_raw, &mut voc_raw),
+            ] {
+                let (e, c) = seg_error(dets.first().copied(), &t.visible, raw);
+                seg.push(e);
+                for (v, x) in voc.iter_mut().zip(c) {
+                    *v += x;
+                }
+            }
         } else {
             for d in &dets {
                 cross.push((d.score, idx, 0.0));
@@ -160,6 +213,8 @@ pub fn score_object(object: &str, images: &[Evaluated]) -> ObjectScore {
         recall_at_1fppi_cross: curve_cross[GRID - 1],
         seg_error_refined: mean(&seg_refined),
         seg_error_raw: mean(&seg_raw),
+        voc_error_refined: voc_error(&voc_refined),
+        voc_error_raw: voc_error(&voc_raw),
         curve,
         curve_cross,
     }
@@ -173,25 +228,40 @@ pub fn mean_score(scores: &[ObjectScore]) -> MeanScore {
         auc_cross: scores.iter().map(|s| s.auc_cross).sum::<f64>() / n,
         seg_error_refined: scores.iter().map(|s| s.seg_error_refined).sum::<f64>() / n,
         seg_error_raw: scores.iter().map(|s| s.seg_error_raw).sum::<f64>() / n,
+        voc_error_refined: scores.iter().map(|s| s.voc_error_refined).sum::<f64>() / n,
+        voc_error_raw: scores.iter().map(|s| s.voc_error_raw).sum::<f64>() / n,
     }
 }
 
 /// A table of the figures, one row per object and the mean.
 pub fn table(scores: &[ObjectScore]) -> String {
     let mut s = format!(
-        "{:10} {:>6} {:>9} {:>10} {:>9} {:>5}\n",
-        "object", "AUC", "AUC-cross", "seg-refine", "seg-raw", "n"
+        "{:10} {:>6} {:>9} {:>10} {:>9} {:>10} {:>9} {:>5}\n",
+        "object", "AUC", "AUC-cross", "seg-refine", "seg-raw", "VOC-refine", "VOC-raw", "n"
     );
     for o in scores {
         s += &format!(
-            "{:10} {:6.3} {:9.3} {:10.4} {:9.4} {:5}\n",
-            o.object, o.auc, o.auc_cross, o.seg_error_refined, o.seg_error_raw, o.images
+            "{:10} {:6.3} {:9.3} {:10.4} {:9.4} {:10.4} {:9.4} {:5}\n",
+            o.object,
+            o.auc,
+            o.auc_cross,
+            o.seg_error_refined,
+            o.seg_error_raw,
+            o.voc_error_refined,
+            o.voc_error_raw,
+            o.images
         );
     }
     let m = mean_score(scores);
     s += &format!(
-        "{:10} {:6.3} {:9.3} {:10.4} {:9.4}\n",
-        "mean", m.auc, m.auc_cross, m.seg_error_refined, m.seg_error_raw
+        "{:10} {:6.3} {:9.3} {:10.4} {:9.4} {:10.4} {:9.4}\n",
+        "mean",
+        m.auc,
+        m.auc_cross,
+        m.seg_error_refined,
+        m.seg_error_raw,
+        m.voc_error_refined,
+        m.voc_error_raw
     );
     s
 }

@@ -16,6 +16,7 @@ use crate::data::{Ko8, Sample};
 use crate::eval::{mean_score, score_object, Evaluated, MeanScore, ObjectScore};
 use crate::model::Model;
 use crate::pipeline::{detect_pyramid, DetectOptions, DetectResponse, MaskMode};
+use crate::vision::refine::PixelRefine;
 
 /// Which images train each object's model besides its own.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -144,6 +145,8 @@ pub struct EvalDetect {
     pub max_detections: usize,
     /// Overrides the models' own thresholds.
     pub threshold: Option<f64>,
+    /// Overrides the models' pixel refinement settings.
+    pub pixel: Option<PixelRefine>,
 }
 
 /// Detections of `models` on `images`, in the response shape of `/detect`
@@ -155,6 +158,22 @@ pub fn detect_all(
     how: EvalDetect,
 ) -> Result<Vec<DetectResponse>, TrainError> {
     use rayon::prelude::*;
+    let overridden: Vec<Model>;
+    let models: Vec<&Model> = match how.pixel {
+        Some(p) => {
+            overridden = models
+                .iter()
+                .map(|m| {
+                    let mut m = (*m).clone();
+                    m.meta.detection.refine.pixel = p;
+                    m
+                })
+                .collect();
+            overridden.iter().collect()
+        }
+        None => models.to_vec(),
+    };
+    let models = &models[..];
     let opts = DetectOptions {
         max_detections: Some(how.max_detections),
         threshold: how.threshold,
@@ -305,9 +324,21 @@ fn fold_models(
         return data
             .objects
             .iter()
-            .map(|o| {
+            .enumerate()
+            .map(|(oi, o)| {
                 let p = fold_dir(dir, fold.0).join(format!("{o}.safetensors"));
-                Ok((Model::load(&p)?, None))
+                let m = Model::load(&p)?;
+                // Models saved before shape models were learned get them
+                // from the fold's own training images (what training
+                // would have learned).
+                let m = if m.shapes.iter().all(Option::is_none) {
+                    let set = data.training_set(oi, Some(fold), neg);
+                    let shapes = super::learn_shapes(&m, &set, Some(cache));
+                    m.with_shapes(shapes)?
+                } else {
+                    m
+                };
+                Ok((m, None))
             })
             .collect();
     }

@@ -37,9 +37,12 @@ use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
 use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
 use crate::vision::energy::{joint_feature, joint_feature_len, PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::rng::SplitMix64;
 use crate::vision::segment::SegmentParams;
+use crate::vision::shape::{learn_colours, ShapeModel};
 use crate::vision::VisionError;
 
 use loss::{cell_truth, IntegralMask, LossKind, Truth, TruthLoss};
@@ -697,7 +700,57 @@ pub fn train_model(
             },
         }),
     };
-    Ok((Model::new(meta, views)?, report))
+    let model = Model::new(meta, views)?;
+    let shapes = learn_shapes(&model, samples, Some(cache));
+    Ok((model.with_shapes(shapes)?, report))
+}
+
+/// Each viewpoint's pixel shape model ([`ShapeModel`]) from the visible
+/// masks and full-extent boxes of the samples annotated with its label and
+/// viewpoint, with the object's colours from those samples' images
+/// (`None` for a viewpoint without any; an image that cannot be read
+/// adds no colours). The images come from `cache`'s pyramids where it has
+/// them, else from their files.
+pub fn learn_shapes(
+    model: &Model,
+    samples: &[&Sample],
+    cache: Option<&PyramidCache>,
+) -> Vec<Option<ShapeModel>> {
+    (0..model.views.len())
+        .map(|a| {
+            let label = &model.meta.viewpoints[a].label;
+            let (w, h) = model.shape_size(a);
+            let mine: Vec<&Sample> = samples
+                .iter()
+                .copied()
+                .filter(|s| {
+                    s.annotation
+                        .as_ref()
+                        .is_some_and(|an| &an.label == label && an.viewpoint == a)
+                })
+                .collect();
+            let mut shape = ShapeModel::learn(
+                w,
+                h,
+                mine.iter()
+                    .filter_map(|s| s.annotation.as_ref())
+                    .map(|an| (&an.visible, an.bbox)),
+            )?;
+            let images: Vec<(Arc<ColorImage>, &Mask)> = mine
+                .par_iter()
+                .filter_map(|s| {
+                    let an = s.annotation.as_ref()?;
+                    let img = match cache.and_then(|c| c.get(&s.image)) {
+                        Some(p) => p.image.clone(),
+                        None => Arc::new(load_image(&s.image).ok()?),
+                    };
+                    Some((img, &an.visible))
+                })
+                .collect();
+            shape.colours = learn_colours(images.iter().map(|(i, m)| (&**i, *m)));
+            Some(shape)
+        })
+        .collect()
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {

@@ -274,6 +274,10 @@ pub fn raw_mask(grid: &CellGrid, labels: &[bool], width: usize, height: usize) -
 pub struct RefineParams {
     pub fill: f64,
     pub clear: f64,
+    /// The pixel-level graph cut that follows (where the viewpoint has a
+    /// shape model); absent in older files: on, default weights.
+    #[serde(default)]
+    pub pixel: super::refine::PixelRefine,
 }
 
 impl Default for RefineParams {
@@ -281,6 +285,7 @@ impl Default for RefineParams {
         Self {
             fill: 0.8,
             clear: 0.2,
+            pixel: super::refine::PixelRefine::default(),
         }
     }
 }
@@ -428,6 +433,7 @@ mod tests {
             &RefineParams {
                 fill: 1.0,
                 clear: 0.0,
+                ..RefineParams::default()
             },
         );
         assert_eq!(keep, m);

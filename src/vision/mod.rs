@@ -10,8 +10,10 @@ pub mod image;
 pub mod mask;
 pub mod maxflow;
 pub mod pyramid;
+pub mod refine;
 pub mod rng;
 pub mod segment;
+pub mod shape;
 
 use thiserror::Error;
 

@@ -100,6 +100,9 @@ pub struct PyramidTiming {
 pub struct FeaturePyramid {
     pub image_width: usize,
     pub image_height: usize,
+    /// The image itself (the pixel refinement of masks follows its colour
+    /// edges).
+    pub image: std::sync::Arc<ColorImage>,
     pub levels: Vec<Level>,
     pub segmentation: Segmentation,
     pub timing: PyramidTiming,
@@ -183,6 +186,7 @@ impl FeaturePyramid {
         Ok(Self {
             image_width: w,
             image_height: h,
+            image: std::sync::Arc::new(img.clone()),
             levels,
             segmentation,
             timing: PyramidTiming {

@@ -621,6 +621,7 @@ fn assemble(
     FeaturePyramid {
         image_width: w,
         image_height: h,
+        image: std::sync::Arc::new(img.clone()),
         levels,
         segmentation,
         timing,

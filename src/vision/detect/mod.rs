@@ -38,6 +38,8 @@ use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
 use super::maxflow::Graph;
 use super::pyramid::{FeaturePyramid, Level};
+use super::refine::refine_pixels;
+use super::shape::ShapeModel;
 use super::{Deadline, VisionError};
 pub use bounds::{
     chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
@@ -95,6 +97,7 @@ impl Default for DetectParams {
 
 impl DetectParams {
     pub fn validate(&self) -> Result<(), VisionError> {
+        self.refine.pixel.validate()?;
         let ok = !self.threshold.is_nan()
             && (0.0..=1.0).contains(&self.nms_iou)
             && (0.0..1.0).contains(&self.max_truncation)
@@ -581,14 +584,27 @@ pub fn box_iou(a: (f64, f64, f64, f64), b: (f64, f64, f64, f64)) -> f64 {
     inter / (a.2 * a.3 + b.2 * b.3 - inter)
 }
 
-/// The raw and refined pixel masks of a detection.
+/// The raw and refined pixel masks of a detection: with the viewpoint's
+/// shape model (and the pixel refinement on), the pixel-level graph cut
+/// ([`crate::vision::refine`]); else the segment snapping.
 pub fn detection_masks(
     det: &Detection,
     pyr: &FeaturePyramid,
     refine: &RefineParams,
+    shape: Option<&ShapeModel>,
 ) -> (Mask, Mask) {
     let raw = raw_mask(&det.grid, &det.cells, pyr.image_width, pyr.image_height);
-    let refined = refine_mask(&raw, &det.grid, &pyr.segmentation, refine);
+    let refined = match shape {
+        Some(s) if refine.pixel.enabled => refine_pixels(
+            &raw,
+            &det.grid,
+            s,
+            &pyr.segmentation,
+            &pyr.image,
+            &refine.pixel,
+        ),
+        _ => refine_mask(&raw, &det.grid, &pyr.segmentation, refine),
+    };
     (raw, refined)
 }
 

@@ -1,0 +1,161 @@
+//! The pixel refinement of masks against the segment snapping, on the
+//! held-out images of one cross-validation fold: each model's top
+//! detection per image is found once, then its mask is refined with every
+//! setting given and scored (`segerr`: 1 - IoU with the visible ground
+//! truth, mean per object, then over objects). The shape models are
+//! learned from the fold's training images, as training does.
+//!
+//! `cargo run --release --example refine_tune -- KO8_ROOT MODELS_DIR FOLD FOLDS [off|S,C,G,B,P ...]`
+//! (MODELS_DIR/fold-FOLD/<object>.safetensors, as `cv --save-models`).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use sdhop::data::load_image;
+use sdhop::model::Model;
+use sdhop::train::ko8::{fold_dir, Ko8Data, NegativeSet};
+use sdhop::train::learn_shapes;
+use sdhop::vision::detect::{DetectParams, Detector};
+use sdhop::vision::mask::{raw_mask, refine_mask, RefineParams};
+use sdhop::vision::pyramid::FeaturePyramid;
+use sdhop::vision::refine::{refine_pixels, PixelRefine};
+
+fn parse(text: &str) -> Option<PixelRefine> {
+    if text == "off" {
+        return None;
+    }
+    let v: Vec<f64> = text.split(',').filter_map(|x| x.parse().ok()).collect();
+    Some(PixelRefine {
+        enabled: true,
+        shape: v[0],
+        cells: v[1],
+        segments: v[2],
+        bias: v[3],
+        smoothness: v[4],
+        colour: v.get(5).copied().unwrap_or(0.0),
+        colour_rounds: v.get(6).map_or(1, |&r| r as usize),
+        learned_colours: v.get(7).copied().unwrap_or(0.0),
+    })
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().collect();
+    let root = PathBuf::from(&args[1]);
+    let models_dir = PathBuf::from(&args[2]);
+    let fold: usize = args[3].parse()?;
+    let folds: usize = args[4].parse()?;
+    let mut configs: Vec<String> = args[5..].to_vec();
+    if configs.is_empty() {
+        configs.push("1,1,1,0,1".into());
+    }
+    let data = Ko8Data::load(&root, &[])?;
+    let neg = NegativeSet::default();
+    let snap = RefineParams::default();
+    // Per object: raw, snapped, then each config.
+    let mut table: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut refine_ms = vec![0.0f64; configs.len()];
+    let mut refine_n = 0usize;
+    for (oi, o) in data.objects.iter().enumerate() {
+        let model = Model::load(&fold_dir(&models_dir, fold).join(format!("{o}.safetensors")))?;
+        let set = data.training_set(oi, Some((fold, folds)), &neg);
+        let blur: usize = std::env::var("BLUR")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0);
+        let shapes: Vec<_> = learn_shapes(&model, &set, None)
+            .into_iter()
+            .map(|s| s.map(|s| s.blurred(blur)))
+            .collect();
+        if let Ok(dir) = std::env::var("DUMP_SHAPES") {
+            for (a, sh) in shapes.iter().enumerate() {
+                if let Some(sh) = sh {
+                    let img =
+                        image::GrayImage::from_fn(sh.width as u32, sh.height as u32, |x, y| {
+                            image::Luma([
+                                (sh.prob[y as usize * sh.width + x as usize] * 255.0) as u8
+                            ])
+                        });
+                    img.save(PathBuf::from(&dir).join(format!("{o}-{a}.png")))?;
+                }
+            }
+        }
+        let det = Detector::new(&model.views)?;
+        let mut acc = vec![0.0f64; 2 + configs.len()];
+        let mut n = 0usize;
+        for (i, s) in data.images[oi].iter().enumerate() {
+            if i % folds != fold {
+                continue;
+            }
+            let a = s.annotation.as_ref().ok_or("no annotation")?;
+            let img = load_image(&s.image)?;
+            let pyr = FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation)?;
+            let params = DetectParams {
+                threshold: -1e9,
+                max_detections: 1,
+                ..model.meta.detection
+            };
+            let (dets, _) = det.detect(&pyr, &params)?;
+            n += 1;
+            let Some(d) = dets.first() else {
+                for v in acc.iter_mut() {
+                    *v += 1.0;
+                }
+                continue;
+            };
+            let (w, h) = (pyr.image_width, pyr.image_height);
+            let raw = raw_mask(&d.grid, &d.cells, w, h);
+            acc[0] += 1.0 - raw.iou(&a.visible);
+            let snapped = refine_mask(&raw, &d.grid, &pyr.segmentation, &snap);
+            acc[1] += 1.0 - snapped.iou(&a.visible);
+            for (ci, c) in configs.iter().enumerate() {
+                let m = match (parse(c), &shapes[d.viewpoint]) {
+                    (Some(p), Some(shape)) => {
+                        let t = Instant::now();
+                        let m = refine_pixels(&raw, &d.grid, shape, &pyr.segmentation, &img, &p);
+                        refine_ms[ci] += t.elapsed().as_secs_f64() * 1e3;
+                        m
+                    }
+                    _ => snapped.clone(),
+                };
+                acc[2 + ci] += 1.0 - m.iou(&a.visible);
+                if ci == 0 && std::env::var("PER_IMAGE").is_ok() {
+                    println!(
+                        "IMG {} box_iou {:.2} raw {:.3} refined {:.3}",
+                        s.id,
+                        sdhop::vision::detect::box_iou(d.bbox, a.bbox),
+                        1.0 - raw.iou(&a.visible),
+                        1.0 - m.iou(&a.visible)
+                    );
+                }
+            }
+            refine_n += 1;
+        }
+        let nf = n.max(1) as f64;
+        table.push((o.clone(), acc.iter().map(|v| v / nf).collect()));
+    }
+    print!("{:10} {:>7} {:>7}", "object", "raw", "snap");
+    for c in &configs {
+        print!(" {c:>14}");
+    }
+    println!();
+    let mut mean = vec![0.0; 2 + configs.len()];
+    for (o, v) in &table {
+        print!("{o:10}");
+        for (i, x) in v.iter().enumerate() {
+            mean[i] += x / table.len() as f64;
+            print!(" {:>w$.4}", x, w = if i < 2 { 7 } else { 14 });
+        }
+        println!();
+    }
+    print!("{:10}", "mean");
+    for (i, x) in mean.iter().enumerate() {
+        print!(" {:>w$.4}", x, w = if i < 2 { 7 } else { 14 });
+    }
+    println!();
+    print!("{:10} {:>7} {:>7}", "ms/det", "", "");
+    for ms in &refine_ms {
+        print!(" {:>14.2}", ms / refine_n.max(1) as f64);
+    }
+    println!();
+    Ok(())
+}
