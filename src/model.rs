@@ -7,7 +7,7 @@
 //! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`, and from format 2 on,
 //! where the trainer learned one, `view{a}.shape` `[rows * cell_size, cols
 //! * cell_size]`: the viewpoint's pixel shape model
-//! ([`crate::vision::shape`]), and `view{a}.colours` `[512]`: the object's
+//! ([`crate::vision::shape`]), and `view{a}.colours` `[4096]`: the object's
 //! colour histogram from the training images. Format 1 files (no shape
 //! models) still load.
 //! The safetensors metadata holds one key, `sdhop`, whose value is the JSON
@@ -479,7 +479,7 @@ mod tests {
             prob: (0..6 * CELL_SIZE * CELL_SIZE)
                 .map(|i| (i % 7) as f32 / 7.0)
                 .collect(),
-            colours: Some((0..512).map(|i| (i % 3) as f32 / 512.0).collect()),
+            colours: Some((0..4096).map(|i| (i % 3) as f32 / 4096.0).collect()),
         };
         let with = m.clone().with_shapes(vec![Some(shape.clone())]).unwrap();
         let back = Model::from_bytes(&with.to_bytes().unwrap()).unwrap();

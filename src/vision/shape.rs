@@ -30,7 +30,7 @@ pub struct ShapeModel {
 }
 
 /// Histogram bins per colour channel of the colour models.
-pub const COLOUR_BINS: usize = 8;
+pub const COLOUR_BINS: usize = 16;
 
 /// The colour histogram bin of a pixel.
 pub fn colour_bin(img: &ColorImage, x: usize, y: usize) -> usize {
