@@ -126,6 +126,15 @@ impl Model {
     /// Builds a model and checks it.
     pub fn new(meta: ModelMeta, views: Vec<ViewWeights>) -> Result<Self, ModelError> {
         let shapes = vec![None; views.len()];
+        Self::checked(meta, views, shapes)
+    }
+
+    /// The model of these parts, checked.
+    fn checked(
+        meta: ModelMeta,
+        views: Vec<ViewWeights>,
+        shapes: Vec<Option<ShapeModel>>,
+    ) -> Result<Self, ModelError> {
         let m = Self {
             meta,
             views,
@@ -389,13 +398,7 @@ impl Model {
                 None
             });
         }
-        let m = Self {
-            meta,
-            views,
-            shapes,
-        };
-        m.validate()?;
-        Ok(m)
+        Self::checked(meta, views, shapes)
     }
 
     /// Writes the model to a file (atomically: a temporary file is renamed).
