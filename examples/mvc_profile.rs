@@ -53,6 +53,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let aug = TruthLoss {
             truth,
             kind: LossKind::SdHop,
+            seg_weight: 1.0,
         };
         if std::env::var("BOUNDS").is_ok() && !pos {
             bound_gaps(&det, &pyr);

@@ -35,6 +35,8 @@ fn parse(text: &str) -> Option<PixelRefine> {
         colour: v.get(5).copied().unwrap_or(0.0),
         colour_rounds: v.get(6).map_or(1, |&r| r as usize),
         learned_colours: v.get(7).copied().unwrap_or(0.0),
+        align: v.get(8).is_some_and(|&a| a > 0.0),
+        margin: v.get(9).copied().unwrap_or(0.0),
     })
 }
 
@@ -103,7 +105,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 continue;
             };
             let (w, h) = (pyr.image_width, pyr.image_height);
-            let raw = raw_mask(&d.grid, &d.cells, w, h);
+            let raw = if std::env::var("ORACLE_CELLS").is_ok() {
+                let im = sdhop::train::loss::IntegralMask::new(&a.visible);
+                let mut t = Vec::new();
+                sdhop::train::loss::cell_truth(&d.grid, &im, &mut t);
+                raw_mask(&d.grid, &t, w, h)
+            } else {
+                raw_mask(&d.grid, &d.cells, w, h)
+            };
             acc[0] += 1.0 - raw.iou(&a.visible);
             let snapped = refine_mask(&raw, &d.grid, &pyr.segmentation, &snap);
             acc[1] += 1.0 - snapped.iou(&a.visible);
@@ -111,13 +120,118 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let m = match (parse(c), &shapes[d.viewpoint]) {
                     (Some(p), Some(shape)) => {
                         let t = Instant::now();
-                        let m = refine_pixels(&raw, &d.grid, shape, &pyr.segmentation, &img, &p);
+                        let m = if std::env::var("ORACLE_BOX").is_ok() {
+                            sdhop::vision::refine::refine_pixels_at(
+                                &raw,
+                                &d.grid,
+                                shape,
+                                &pyr.segmentation,
+                                &img,
+                                &p,
+                                a.bbox,
+                            )
+                        } else {
+                            refine_pixels(&raw, &d.grid, shape, &pyr.segmentation, &img, &p)
+                        };
                         refine_ms[ci] += t.elapsed().as_secs_f64() * 1e3;
                         m
                     }
                     _ => snapped.clone(),
                 };
                 acc[2 + ci] += 1.0 - m.iou(&a.visible);
+                if let (0, Ok(dir)) = (ci, std::env::var("DUMP_DIR")) {
+                    let (x0, y0, x1, y1) = d.grid.pixel_range(w, h);
+                    let mut out = image::RgbImage::new(w as u32, h as u32);
+                    for y in 0..h {
+                        for x in 0..w {
+                            let g = (img.get(x, y, 0) + img.get(x, y, 1) + img.get(x, y, 2)) / 6.0;
+                            let g = g as u8;
+                            let (p, t, r) = (m.get(x, y), a.visible.get(x, y), raw.get(x, y));
+                            let mut c = match (p, t) {
+                                (true, true) => [g / 2, 128 + g / 2, g / 2],
+                                (true, false) => [g / 2, g / 2, 128 + g / 2],
+                                (false, true) => [128 + g / 2, g / 2, g / 2],
+                                _ => [g, g, g],
+                            };
+                            let edge = (x == x0 || x + 1 == x1) && (y0..y1).contains(&y)
+                                || (y == y0 || y + 1 == y1) && (x0..x1).contains(&x);
+                            if edge {
+                                c = [255, 255, 0];
+                            }
+                            if r && (x + y) % 6 == 0 {
+                                c = [255, 255, 255];
+                            }
+                            out.put_pixel(x as u32, y as u32, image::Rgb(c));
+                        }
+                    }
+                    let e = 1.0 - m.iou(&a.visible);
+                    out.save(PathBuf::from(&dir).join(format!("{:.3}-{}.png", e, s.id)))?;
+                }
+                if ci == 0 && std::env::var("BREAKDOWN").is_ok() {
+                    let occ_path = s.image.with_extension("occ.png");
+                    let occ = image::open(&occ_path)?.to_luma8();
+                    let (mut tp, mut fp_occ, mut fp_bg, mut fnn) = (0usize, 0usize, 0usize, 0usize);
+                    let (mut fn_rawvis, mut fp_occ_raw) = (0usize, 0usize);
+                    for y in 0..h {
+                        for x in 0..w {
+                            let p = m.get(x, y);
+                            let g = a.visible.get(x, y);
+                            let o = occ.get_pixel(x as u32, y as u32)[0] > 0;
+                            match (p, g) {
+                                (true, true) => tp += 1,
+                                (true, false) if o => {
+                                    fp_occ += 1;
+                                    if raw.get(x, y) {
+                                        fp_occ_raw += 1;
+                                    }
+                                }
+                                (true, false) => fp_bg += 1,
+                                (false, true) => {
+                                    fnn += 1;
+                                    if raw.get(x, y) {
+                                        fn_rawvis += 1;
+                                    }
+                                }
+                                _ => {}
+                            }
+                        }
+                    }
+                    let u = (tp + fp_occ + fp_bg + fnn).max(1) as f64;
+                    // Localisation floor: the true visible mask carried
+                    // from the true box into the detected one.
+                    let (gx, gy, gw, gh) = a.bbox;
+                    let (dx, dy, dw, dh) = d.bbox;
+                    let mut moved = sdhop::vision::mask::Mask::new(w, h);
+                    for y in 0..h {
+                        for x in 0..w {
+                            let sx = gx + (x as f64 + 0.5 - dx) * gw / dw;
+                            let sy = gy + (y as f64 + 0.5 - dy) * gh / dh;
+                            if sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h {
+                                moved.set(x, y, a.visible.get(sx as usize, sy as usize));
+                            }
+                        }
+                    }
+                    println!(
+                        "FLOOR {} {:.4} {:.2} {:.2} {:.2} {:.2} {:.2} {:.2} {:.2} {:.2}",
+                        o,
+                        1.0 - moved.iou(&a.visible),
+                        gx,
+                        gy,
+                        gw,
+                        gh,
+                        dx,
+                        dy,
+                        dw,
+                        dh
+                    );
+                    println!(
+                        "BRK {} {} box_iou {:.3} fp_occ {:.4} fp_bg {:.4} fn {:.4} fn_rawvis {:.4} fp_occ_raw {:.4}",
+                        o, s.id,
+                        sdhop::vision::detect::box_iou(d.bbox, a.bbox),
+                        fp_occ as f64 / u, fp_bg as f64 / u, fnn as f64 / u,
+                        fn_rawvis as f64 / u, fp_occ_raw as f64 / u
+                    );
+                }
                 if ci == 0 && std::env::var("PER_IMAGE").is_ok() {
                     println!(
                         "IMG {} box_iou {:.2} raw {:.3} refined {:.3}",

@@ -10,7 +10,7 @@ pub(crate) struct TrainSettings {
     /// JSON file with any of the training settings (see `TrainParams` in
     /// the docs: c, k, template_scale, template, pyramid, segmentation,
     /// max_truncation, epsilon, max_passes, max_inner, init_locations,
-    /// mining_passes, mining_budget, cache_size, positive_share, loss, hop,
+    /// mining_passes, mining_budget, cache_size, positive_share, loss, seg_weight, hop,
     /// pairwise, pair_mode, seed, threshold).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,

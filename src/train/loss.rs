@@ -104,6 +104,8 @@ pub struct Truth<'a> {
 pub struct TruthLoss<'a> {
     pub truth: Option<Truth<'a>>,
     pub kind: LossKind,
+    /// Weight of the visibility term (1: eq. (3) as the paper writes it).
+    pub seg_weight: f64,
 }
 
 impl TruthLoss<'_> {
@@ -116,12 +118,12 @@ impl TruthLoss<'_> {
         let n = (grid.rows * grid.cols) as f64;
         let iou = box_iou(t.bbox, grid.pixel_box());
         match self.kind {
-            LossKind::SdHop => (1.0 - iou, iou / n),
+            LossKind::SdHop => (1.0 - iou, self.seg_weight * iou / n),
             LossKind::Gao => {
                 if iou < 0.5 {
                     (1.0, 0.0)
                 } else {
-                    (0.0, 1.0 / n)
+                    (0.0, self.seg_weight / n)
                 }
             }
         }
@@ -142,7 +144,7 @@ impl TruthLoss<'_> {
 
 impl LossAugment for TruthLoss<'_> {
     fn max_loss(&self) -> f64 {
-        1.0
+        self.seg_weight.max(1.0)
     }
 
     fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem) {
@@ -234,6 +236,7 @@ mod tests {
                     visible: &im,
                 }),
                 kind: LossKind::SdHop,
+                seg_weight: 1.0,
             };
             assert_eq!(at(&g).loss(&g, &tv), 0.0);
             let far = grid(g.cell_x + 6, g.cell_y, 4, 5, 1.0);
@@ -286,6 +289,7 @@ mod tests {
                     visible: &im,
                 }),
                 kind,
+                seg_weight: 1.0,
             };
             let n = rows * cols;
             let mut p = BoxProblem::new(rows, cols, vec![0.0, 0.5, 0.7, 0.5, 0.0]);

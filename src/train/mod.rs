@@ -108,6 +108,9 @@ pub struct TrainParams {
     /// carry the rest).
     pub positive_share: f64,
     pub loss: LossKind,
+    /// Weight of the loss's visibility (Hamming) term against its box
+    /// term (1: eq. (3) of the paper).
+    pub seg_weight: f64,
     /// Train the higher-order potentials (false: the no-HOP ablation).
     pub hop: bool,
     /// Train the pairwise term (false: no pairwise ablation).
@@ -145,6 +148,7 @@ impl Default for TrainParams {
             cache_size: 12,
             positive_share: 0.5,
             loss: LossKind::SdHop,
+            seg_weight: 1.0,
             hop: true,
             pairwise: true,
             pair_mode: PairwiseMode::Grid,
@@ -172,6 +176,9 @@ impl TrainParams {
         }
         if self.epsilon.is_nan() || self.epsilon <= 0.0 {
             return bad("epsilon must be > 0".into());
+        }
+        if !self.seg_weight.is_finite() || self.seg_weight < 0.0 {
+            return bad(format!("seg_weight must be >= 0, got {}", self.seg_weight));
         }
         if !(0.0..=1.0).contains(&self.positive_share) {
             return bad("positive_share must be in [0, 1]".into());
@@ -809,6 +816,7 @@ fn search(
                     visible: &t.visible,
                 }),
                 kind: params.loss,
+                seg_weight: params.seg_weight,
             };
             // The empty output: loss 1 on a positive, 0 on a negative.
             let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };

@@ -51,6 +51,13 @@ pub struct PixelRefine {
     /// images' colours (where the viewpoint has them), the rest from the
     /// image's own pixels the prior is surest of.
     pub learned_colours: f64,
+    /// Re-place the shape model where it best agrees with a first cut
+    /// (shifted and stretched within the box's uncertainty), then cut
+    /// again.
+    pub align: bool,
+    /// The cut's region: the box grown by this share of its size each
+    /// side (the cells' labels hold in the box only).
+    pub margin: f64,
 }
 
 impl Default for PixelRefine {
@@ -67,6 +74,8 @@ impl Default for PixelRefine {
             colour: 3.0,
             colour_rounds: 1,
             learned_colours: 1.0,
+            align: false,
+            margin: 0.0,
         }
     }
 }
@@ -89,7 +98,8 @@ impl PixelRefine {
             && self.smoothness >= 0.0
             && self.colour >= 0.0
             && (1..=10).contains(&self.colour_rounds)
-            && (0.0..=1.0).contains(&self.learned_colours);
+            && (0.0..=1.0).contains(&self.learned_colours)
+            && (0.0..=0.5).contains(&self.margin);
         if ok {
             Ok(())
         } else {
@@ -117,151 +127,364 @@ pub fn refine_pixels(
 ) -> Mask {
     let (w, h) = (raw.width, raw.height);
     let (x0, y0, x1, y1) = grid.pixel_range(w, h);
-    let mut out = Mask::new(w, h);
     if x1 <= x0 || y1 <= y0 || img.width() != w || img.height() != h {
-        return out;
+        return Mask::new(w, h);
     }
-    let (bw, bh) = (x1 - x0, y1 - y0);
-    let (bx, by, bwf, bhf) = grid.pixel_box();
-    let n = bw * bh;
-    // The prior per pixel: shape probability, and it times the cell label.
-    let mut s = vec![0.0f64; n];
-    let mut q = vec![0.0f64; n];
-    let mut seg_sum = std::collections::HashMap::<u32, (f64, f64)>::new();
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let i = (y - y0) * bw + (x - x0);
-            let fx = (x as f64 + 0.5 - bx) / bwf;
-            let fy = (y as f64 + 0.5 - by) / bhf;
-            s[i] = shape.at(fx, fy);
-            q[i] = if raw.get(x, y) { s[i] } else { 0.0 };
-            let e = seg_sum.entry(seg.label(x, y)).or_insert((0.0, 0.0));
-            e.0 += q[i];
-            e.1 += 1.0;
-        }
+    refine_pixels_at(raw, grid, shape, seg, img, params, grid.pixel_box())
+}
+
+/// [`refine_pixels`] with the shape model stretched over `placement`
+/// (`x, y, w, h` in pixels) instead of the detection's box.
+pub fn refine_pixels_at(
+    raw: &Mask,
+    grid: &CellGrid,
+    shape: &ShapeModel,
+    seg: &Segmentation,
+    img: &ColorImage,
+    params: &PixelRefine,
+    placement: (f64, f64, f64, f64),
+) -> Mask {
+    let (w, h) = (raw.width, raw.height);
+    let inner = grid.pixel_range(w, h);
+    let (x0, y0, x1, y1) = inner;
+    if x1 <= x0 || y1 <= y0 || img.width() != w || img.height() != h {
+        return Mask::new(w, h);
     }
-    // Colour differences of the 4-neighbour pairs, and their mean.
-    let diff = |a: (usize, usize), b: (usize, usize)| -> f64 {
-        (0..3)
-            .map(|c| f64::from(img.get(a.0, a.1, c) - img.get(b.0, b.1, c)).powi(2))
-            .sum()
-    };
-    let (mut dsum, mut dn) = (0.0, 0usize);
-    for y in y0..y1 {
-        for x in x0..x1 {
-            if x + 1 < x1 {
-                dsum += diff((x, y), (x + 1, y));
-                dn += 1;
-            }
-            if y + 1 < y1 {
-                dsum += diff((x, y), (x, y + 1));
-                dn += 1;
-            }
-        }
-    }
-    let beta = if dn > 0 && dsum > 0.0 {
-        dn as f64 / (2.0 * dsum)
-    } else {
-        0.0
-    };
-    // Colour log-likelihood ratios: at first the object's colours from
-    // the pixels the prior is surest of (shape at least a half on visible
-    // cells), the background's from a ring around the box (an occluder
-    // usually reaches past the box) and the box pixels the shape excludes;
-    // in later rounds (GrabCut) the object's from the last cut's mask and
-    // the background's from the rest of the box and the ring.
-    let nb = COLOUR_BINS * COLOUR_BINS * COLOUR_BINS;
-    let ring = (bw.max(bh) / 10).max(4);
-    let (rx0, ry0) = (x0.saturating_sub(ring), y0.saturating_sub(ring));
-    let (rx1, ry1) = ((x1 + ring).min(w), (y1 + ring).min(h));
-    let mut ring_hist = vec![0.0f64; nb];
-    if params.colour > 0.0 {
-        for y in ry0..ry1 {
-            for x in rx0..rx1 {
-                if !(x0..x1).contains(&x) || !(y0..y1).contains(&y) {
-                    ring_hist[colour_bin(img, x, y)] += 1.0;
-                }
-            }
-        }
-    }
-    let rounds = if params.colour > 0.0 {
-        params.colour_rounds.max(1)
-    } else {
-        1
-    };
-    let mut g = Graph::new();
-    let mut ratio = vec![0.0f64; nb];
-    for round in 0..rounds {
-        if params.colour > 0.0 {
-            let (mut hf, mut hb) = (vec![0.0f64; nb], ring_hist.clone());
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let i = (y - y0) * bw + (x - x0);
-                    let (fg, bg) = if round == 0 {
-                        (q[i] >= 0.5, s[i] < 0.1)
-                    } else {
-                        (out.get(x, y), !out.get(x, y))
-                    };
-                    if fg {
-                        hf[colour_bin(img, x, y)] += 1.0;
-                    } else if bg {
-                        hb[colour_bin(img, x, y)] += 1.0;
-                    }
-                }
-            }
-            let (nf, nbg): (f64, f64) = (hf.iter().sum(), hb.iter().sum());
-            if nf > 0.0 && nbg > 0.0 {
-                let learned = shape
-                    .colours
-                    .as_ref()
-                    .filter(|_| params.learned_colours > 0.0);
-                for (k, (r, (f, b))) in ratio.iter_mut().zip(hf.iter().zip(&hb)).enumerate() {
-                    let mut pf = (f + 0.5) / (nf + 0.5 * nb as f64);
-                    if let Some(l) = learned {
-                        let a = params.learned_colours;
-                        pf = (1.0 - a) * pf + a * (f64::from(l[k]) + 0.5 / nb as f64) / 1.5;
-                    }
-                    let pb = (b + 0.5) / (nbg + 0.5 * nb as f64);
-                    *r = (pf / pb).ln().clamp(-COLOUR_CLAMP, COLOUR_CLAMP);
-                }
-            }
-        }
-        g.reset();
-        g.add_nodes(n);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                let i = (y - y0) * bw + (x - x0);
-                let (fsum, fcount) = seg_sum.get(&seg.label(x, y)).copied().unwrap_or((0.0, 1.0));
-                let f = fsum / fcount.max(1.0);
-                let cell = if raw.get(x, y) { 1.0 } else { -1.0 };
-                let l = params.shape * logit(s[i])
-                    + params.cells * cell
-                    + params.segments * (2.0 * f - 1.0)
-                    + params.colour * ratio[colour_bin(img, x, y)] / COLOUR_CLAMP
-                    + params.bias;
-                // Source side is the object: labelling a pixel background
-                // cuts its source capacity.
-                g.add_tweights(i, l.max(0.0), (-l).max(0.0));
-                if params.smoothness > 0.0 {
-                    if x + 1 < x1 {
-                        let c = params.smoothness * (-beta * diff((x, y), (x + 1, y))).exp();
-                        g.add_edge(i, i + 1, c, c);
-                    }
-                    if y + 1 < y1 {
-                        let c = params.smoothness * (-beta * diff((x, y), (x, y + 1))).exp();
-                        g.add_edge(i, i + bw, c, c);
-                    }
-                }
-            }
-        }
-        g.maxflow();
-        for y in y0..y1 {
-            for x in x0..x1 {
-                out.set(x, y, g.is_source_side((y - y0) * bw + (x - x0)));
-            }
+    let (mx, my) = (
+        (params.margin * (x1 - x0) as f64).round() as usize,
+        (params.margin * (y1 - y0) as f64).round() as usize,
+    );
+    let range = (
+        x0.saturating_sub(mx),
+        y0.saturating_sub(my),
+        (x1 + mx).min(w),
+        (y1 + my).min(h),
+    );
+    let mut cut = Cut::new(raw, range, inner, seg, img, params);
+    cut.set_prior(shape, placement);
+    let mut out = cut.solve(shape);
+    if params.align {
+        let aligned = cut.align(shape, &out, placement);
+        if aligned != placement {
+            cut.set_prior(shape, aligned);
+            out = cut.solve(shape);
         }
     }
     out
+}
+
+/// One detection's graph cut: the box, its pixels' priors and the
+/// pairwise terms' colour scale.
+struct Cut<'a> {
+    raw: &'a Mask,
+    seg: &'a Segmentation,
+    img: &'a ColorImage,
+    params: &'a PixelRefine,
+    range: (usize, usize, usize, usize),
+    /// The detection's box (within `range`): the cells' labels hold there.
+    inner: (usize, usize, usize, usize),
+    /// Shape probability per box pixel, and it times the cell label.
+    s: Vec<f64>,
+    q: Vec<f64>,
+    seg_sum: std::collections::HashMap<u32, (f64, f64)>,
+    beta: f64,
+    ring_hist: Vec<f64>,
+    graph: Graph,
+}
+
+impl<'a> Cut<'a> {
+    fn new(
+        raw: &'a Mask,
+        range: (usize, usize, usize, usize),
+        inner: (usize, usize, usize, usize),
+        seg: &'a Segmentation,
+        img: &'a ColorImage,
+        params: &'a PixelRefine,
+    ) -> Self {
+        let (x0, y0, x1, y1) = range;
+        let (w, h) = (raw.width, raw.height);
+        let (bw, bh) = (x1 - x0, y1 - y0);
+        // Colour differences of the 4-neighbour pairs, and their mean.
+        let (mut dsum, mut dn) = (0.0, 0usize);
+        for y in y0..y1 {
+            for x in x0..x1 {
+                if x + 1 < x1 {
+                    dsum += colour_diff(img, (x, y), (x + 1, y));
+                    dn += 1;
+                }
+                if y + 1 < y1 {
+                    dsum += colour_diff(img, (x, y), (x, y + 1));
+                    dn += 1;
+                }
+            }
+        }
+        let beta = if dn > 0 && dsum > 0.0 {
+            dn as f64 / (2.0 * dsum)
+        } else {
+            0.0
+        };
+        // The background's colours from a ring around the box (an occluder
+        // usually reaches past the box).
+        let nb = COLOUR_BINS * COLOUR_BINS * COLOUR_BINS;
+        let ring = (bw.max(bh) / 10).max(4);
+        let (rx0, ry0) = (x0.saturating_sub(ring), y0.saturating_sub(ring));
+        let (rx1, ry1) = ((x1 + ring).min(w), (y1 + ring).min(h));
+        let mut ring_hist = vec![0.0f64; nb];
+        if params.colour > 0.0 {
+            for y in ry0..ry1 {
+                for x in rx0..rx1 {
+                    if !(x0..x1).contains(&x) || !(y0..y1).contains(&y) {
+                        ring_hist[colour_bin(img, x, y)] += 1.0;
+                    }
+                }
+            }
+        }
+        Self {
+            raw,
+            seg,
+            img,
+            params,
+            range,
+            inner,
+            s: vec![0.0; bw * bh],
+            q: vec![0.0; bw * bh],
+            seg_sum: std::collections::HashMap::new(),
+            beta,
+            ring_hist,
+            graph: Graph::new(),
+        }
+    }
+
+    fn in_box(&self, x: usize, y: usize) -> bool {
+        in_box(self.inner, x, y)
+    }
+
+    /// The shape prior with the shape model stretched over `placement`
+    /// (`x, y, w, h` in pixels).
+    fn set_prior(&mut self, shape: &ShapeModel, placement: (f64, f64, f64, f64)) {
+        let (x0, y0, x1, y1) = self.range;
+        let bw = x1 - x0;
+        let (bx, by, bwf, bhf) = placement;
+        self.seg_sum.clear();
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let i = (y - y0) * bw + (x - x0);
+                let fx = (x as f64 + 0.5 - bx) / bwf;
+                let fy = (y as f64 + 0.5 - by) / bhf;
+                self.s[i] = shape.at(fx, fy);
+                self.q[i] = if self.raw.get(x, y) { self.s[i] } else { 0.0 };
+                let e = self
+                    .seg_sum
+                    .entry(self.seg.label(x, y))
+                    .or_insert((0.0, 0.0));
+                e.0 += self.q[i];
+                e.1 += 1.0;
+            }
+        }
+    }
+
+    /// The minimum cut under the current prior (GrabCut rounds where
+    /// asked).
+    fn solve(&mut self, shape: &ShapeModel) -> Mask {
+        let params = self.params;
+        let img = self.img;
+        let (x0, y0, x1, y1) = self.range;
+        let (bw, bh) = (x1 - x0, y1 - y0);
+        let n = bw * bh;
+        let mut out = Mask::new(self.raw.width, self.raw.height);
+        // Colour log-likelihood ratios: at first the object's colours from
+        // the pixels the prior is surest of (shape at least a half on
+        // visible cells), the background's from the ring and the box
+        // pixels the shape excludes; in later rounds (GrabCut) the
+        // object's from the last cut's mask and the background's from the
+        // rest of the box and the ring.
+        let nb = COLOUR_BINS * COLOUR_BINS * COLOUR_BINS;
+        let rounds = if params.colour > 0.0 {
+            params.colour_rounds.max(1)
+        } else {
+            1
+        };
+        let mut ratio = vec![0.0f64; nb];
+        for round in 0..rounds {
+            if params.colour > 0.0 {
+                let (mut hf, mut hb) = (vec![0.0f64; nb], self.ring_hist.clone());
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let i = (y - y0) * bw + (x - x0);
+                        let (fg, bg) = if round == 0 {
+                            (self.q[i] >= 0.5, self.s[i] < 0.1)
+                        } else {
+                            (out.get(x, y), !out.get(x, y))
+                        };
+                        if fg {
+                            hf[colour_bin(img, x, y)] += 1.0;
+                        } else if bg {
+                            hb[colour_bin(img, x, y)] += 1.0;
+                        }
+                    }
+                }
+                let (nf, nbg): (f64, f64) = (hf.iter().sum(), hb.iter().sum());
+                if nf > 0.0 && nbg > 0.0 {
+                    let learned = shape
+                        .colours
+                        .as_ref()
+                        .filter(|_| params.learned_colours > 0.0);
+                    for (k, (r, (f, b))) in ratio.iter_mut().zip(hf.iter().zip(&hb)).enumerate() {
+                        let mut pf = (f + 0.5) / (nf + 0.5 * nb as f64);
+                        if let Some(l) = learned {
+                            let a = params.learned_colours;
+                            pf = (1.0 - a) * pf + a * (f64::from(l[k]) + 0.5 / nb as f64) / 1.5;
+                        }
+                        let pb = (b + 0.5) / (nbg + 0.5 * nb as f64);
+                        *r = (pf / pb).ln().clamp(-COLOUR_CLAMP, COLOUR_CLAMP);
+                    }
+                }
+            }
+            let inner = self.inner;
+            let g = &mut self.graph;
+            g.reset();
+            g.add_nodes(n);
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let i = (y - y0) * bw + (x - x0);
+                    let (fsum, fcount) = self
+                        .seg_sum
+                        .get(&self.seg.label(x, y))
+                        .copied()
+                        .unwrap_or((0.0, 1.0));
+                    let f = fsum / fcount.max(1.0);
+                    let cell = if !in_box(inner, x, y) {
+                        0.0
+                    } else if self.raw.get(x, y) {
+                        1.0
+                    } else {
+                        -1.0
+                    };
+                    let l = params.shape * logit(self.s[i])
+                        + params.cells * cell
+                        + params.segments * (2.0 * f - 1.0)
+                        + params.colour * ratio[colour_bin(img, x, y)] / COLOUR_CLAMP
+                        + params.bias;
+                    // Source side is the object: labelling a pixel
+                    // background cuts its source capacity.
+                    g.add_tweights(i, l.max(0.0), (-l).max(0.0));
+                    if params.smoothness > 0.0 {
+                        if x + 1 < x1 {
+                            let c = params.smoothness
+                                * (-self.beta * colour_diff(img, (x, y), (x + 1, y))).exp();
+                            g.add_edge(i, i + 1, c, c);
+                        }
+                        if y + 1 < y1 {
+                            let c = params.smoothness
+                                * (-self.beta * colour_diff(img, (x, y), (x, y + 1))).exp();
+                            g.add_edge(i, i + bw, c, c);
+                        }
+                    }
+                }
+            }
+            g.maxflow();
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    out.set(x, y, g.is_source_side((y - y0) * bw + (x - x0)));
+                }
+            }
+        }
+        out
+    }
+
+    /// The placement of the shape model (shifted and stretched from
+    /// `start`) that agrees best with a cut `m`: its pixels pull the shape
+    /// in, the box's other pixels push it out except on occluded cells,
+    /// where the object may be hidden. Coordinate descent over the four
+    /// box parameters, within [`ALIGN_SHIFT`] and [`ALIGN_SCALE`].
+    fn align(
+        &self,
+        shape: &ShapeModel,
+        m: &Mask,
+        start: (f64, f64, f64, f64),
+    ) -> (f64, f64, f64, f64) {
+        let (x0, y0, x1, y1) = self.range;
+        let mut pts: Vec<(f64, f64, f64)> = Vec::new();
+        for y in (y0..y1).step_by(2) {
+            for x in (x0..x1).step_by(2) {
+                let e = if m.get(x, y) {
+                    1.0
+                } else if self.raw.get(x, y) || !self.in_box(x, y) {
+                    -1.0
+                } else {
+                    0.0
+                };
+                if e != 0.0 {
+                    pts.push((x as f64 + 0.5, y as f64 + 0.5, e));
+                }
+            }
+        }
+        let (sx, sy, sw, sh) = start;
+        let (cx0, cy0) = (sx + sw / 2.0, sy + sh / 2.0);
+        let place = |p: &[f64; 4]| {
+            let (w, h) = (sw * p[2].exp(), sh * p[3].exp());
+            (cx0 + p[0] * sw - w / 2.0, cy0 + p[1] * sh - h / 2.0, w, h)
+        };
+        let score = |p: &[f64; 4]| {
+            let (bx, by, bw, bh) = place(p);
+            pts.iter()
+                .map(|&(x, y, e)| e * logit(shape.at((x - bx) / bw, (y - by) / bh)))
+                .sum::<f64>()
+        };
+        let mut p = [0.0f64; 4];
+        let mut best = score(&p);
+        let mut step = [ALIGN_STEP, ALIGN_STEP, ALIGN_STEP, ALIGN_STEP];
+        let limit = [ALIGN_SHIFT, ALIGN_SHIFT, ALIGN_SCALE, ALIGN_SCALE];
+        for _ in 0..ALIGN_ITERATIONS {
+            let mut moved = false;
+            for k in 0..4 {
+                for dir in [-1.0, 1.0] {
+                    let mut c = p;
+                    c[k] += dir * step[k];
+                    if c[k].abs() > limit[k] {
+                        continue;
+                    }
+                    let v = score(&c);
+                    if v > best {
+                        best = v;
+                        p = c;
+                        moved = true;
+                    }
+                }
+            }
+            if !moved {
+                for st in step.iter_mut() {
+                    *st /= 2.0;
+                }
+                if step[0] < ALIGN_STEP / 8.0 {
+                    break;
+                }
+            }
+        }
+        if p == [0.0; 4] {
+            start
+        } else {
+            place(&p)
+        }
+    }
+}
+
+/// First step of the shape alignment (share of the box; log scale).
+const ALIGN_STEP: f64 = 0.04;
+/// Largest shift of the aligned shape, as a share of the box.
+const ALIGN_SHIFT: f64 = 0.15;
+/// Largest change of the aligned shape's log size.
+const ALIGN_SCALE: f64 = 0.2;
+const ALIGN_ITERATIONS: usize = 40;
+
+fn in_box(b: (usize, usize, usize, usize), x: usize, y: usize) -> bool {
+    (b.0..b.2).contains(&x) && (b.1..b.3).contains(&y)
+}
+
+fn colour_diff(img: &ColorImage, a: (usize, usize), b: (usize, usize)) -> f64 {
+    (0..3)
+        .map(|c| f64::from(img.get(a.0, a.1, c) - img.get(b.0, b.1, c)).powi(2))
+        .sum()
 }
 
 #[cfg(test)]
@@ -348,5 +571,71 @@ mod tests {
         let raw = super::super::mask::raw_mask(&grid, &half, w, h);
         let refined = refine_pixels(&raw, &grid, &shape, &seg, &img, &PixelRefine::default());
         assert!(!refined.get(36, 24) && refined.get(14, 24));
+    }
+
+    /// The alignment moves a shape model placed off a disc back onto the
+    /// first cut's disc.
+    #[test]
+    fn alignment_moves_a_shifted_shape_back_onto_the_object() {
+        let (w, h) = (64usize, 64usize);
+        let inside = |x: usize, y: usize| {
+            let (dx, dy) = (x as f64 + 0.5 - 32.0, y as f64 + 0.5 - 32.0);
+            dx * dx + dy * dy < 13.0 * 13.0
+        };
+        let mut data = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                data.extend_from_slice(if inside(x, y) {
+                    &[200.0, 40.0, 40.0]
+                } else {
+                    &[40.0, 160.0, 60.0]
+                });
+            }
+        }
+        let img = ColorImage::new(w, h, data).unwrap();
+        // A 32 px box (4x4 cells of 8) at (16, 16) around the disc.
+        let grid = CellGrid {
+            cell_x: 2,
+            cell_y: 2,
+            rows: 4,
+            cols: 4,
+            scale_x: 1.0,
+            scale_y: 1.0,
+            cell_size: 8,
+        };
+        let raw = super::super::mask::raw_mask(&grid, &[true; 16], w, h);
+        let shape = ShapeModel {
+            width: 32,
+            height: 32,
+            prob: (0..32 * 32)
+                .map(|i| {
+                    let (u, v) = ((i % 32) as f64 + 0.5 - 16.0, (i / 32) as f64 + 0.5 - 16.0);
+                    if u * u + v * v < 13.0 * 13.0 {
+                        0.95
+                    } else {
+                        0.02
+                    }
+                })
+                .collect(),
+            colours: None,
+        };
+        let seg = Segmentation::from_labels(w, h, &vec![0u32; w * h]).unwrap();
+        let mut truth = Mask::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                truth.set(x, y, inside(x, y));
+            }
+        }
+        // A first cut that found the disc: the shape placed 5 px right
+        // and 10% too wide is moved back onto it.
+        let params = PixelRefine::default();
+        let range = grid.pixel_range(w, h);
+        let cut = Cut::new(&raw, range, range, &seg, &img, &params);
+        let (x, y, bw, bh) = cut.align(&shape, &truth, (19.4, 16.0, 35.2, 32.0));
+        assert!((x - 16.0).abs() < 1.5 && (y - 16.0).abs() < 1.5, "{x} {y}");
+        assert!(
+            (bw - 32.0).abs() < 2.0 && (bh - 32.0).abs() < 2.0,
+            "{bw} {bh}"
+        );
     }
 }
