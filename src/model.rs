@@ -78,6 +78,11 @@ pub struct ViewMeta {
     pub rows: usize,
     /// Template width in cells.
     pub cols: usize,
+    /// The component's mean viewing direction in the object's mesh frame
+    /// (unit vector from the object towards the camera), for models
+    /// trained from a mesh.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direction: Option<[f64; 3]>,
 }
 
 /// JSON metadata of a weights file.
@@ -454,6 +459,7 @@ mod tests {
                 label: "cup".into(),
                 rows: 2,
                 cols: 3,
+                direction: None,
             }],
             provenance: serde_json::json!({"made_by": "test"}),
         };

@@ -12,6 +12,7 @@ use crate::vision::image::ColorImage;
 use crate::vision::mask::{CompressedRle, Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
+use crate::vision::shape::{colour_agreement, image_colours};
 use crate::vision::{Deadline, VisionError};
 
 /// Default upper limit on the pixels of an input image.
@@ -290,15 +291,28 @@ fn run_model(
     timing.responses += s.responses_ms;
     timing.mincut += s.mincut_ms;
     let t = Instant::now();
+    // The image's colours, for the colour agreement of models that use it.
+    let image_colours = (params.colour_weight > 0.0).then(|| image_colours(&pyr.image));
     for d in dets {
         if opts.deadline.passed() {
             return Err(VisionError::DeadlineExceeded);
         }
+        let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+        let mut score = d.score;
+        let object_colours = shape.and_then(|s| s.colours.as_ref());
+        let masks = match (&image_colours, object_colours) {
+            (Some(ic), Some(oc)) => {
+                let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
+                score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
+                Some((raw, refined))
+            }
+            _ => None,
+        };
         let (raw, refined) = if opts.masks == MaskMode::None {
             (None, None)
         } else {
-            let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
-            let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
+            let (raw, refined) =
+                masks.unwrap_or_else(|| detection_masks(&d, pyr, &params.refine, shape));
             let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
             let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
             (
@@ -309,7 +323,7 @@ fn run_model(
         detections.push(DetectionJson {
             label: m.viewpoints[d.viewpoint].label.clone(),
             model: m.name.clone(),
-            score: d.score,
+            score,
             bbox: BoxJson {
                 x: d.bbox.0,
                 y: d.bbox.1,

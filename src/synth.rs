@@ -383,6 +383,7 @@ pub fn hand_model(
             label: name.to_string(),
             rows: obj.rows,
             cols: obj.cols,
+            direction: None,
         }],
         provenance: serde_json::json!({
             "source": "hand-built from the HOG of a synthetic object (no training)",

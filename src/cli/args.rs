@@ -32,6 +32,9 @@ pub(crate) struct TrainSettings {
     /// Smallest pyramid scale.
     #[arg(long)]
     pub(crate) min_scale: Option<f32>,
+    /// Largest pyramid scale (above 1: upsampled levels for small objects).
+    #[arg(long)]
+    pub(crate) max_scale: Option<f32>,
     /// Felzenszwalb-Huttenlocher k (segment size preference).
     #[arg(long)]
     pub(crate) seg_k: Option<f32>,
@@ -112,6 +115,9 @@ impl TrainSettings {
         }
         if let Some(v) = self.min_scale {
             p.pyramid.min_scale = v;
+        }
+        if let Some(v) = self.max_scale {
+            p.pyramid.max_scale = v;
         }
         if let Some(v) = self.seg_k {
             p.segmentation.k = v;

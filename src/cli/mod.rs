@@ -10,6 +10,7 @@ mod cv;
 mod demo;
 mod detect;
 mod eval;
+mod mesh;
 mod pose;
 mod pose_bench;
 mod pose_data;
@@ -46,6 +47,7 @@ use cv::*;
 use demo::*;
 use detect::*;
 use eval::*;
+use mesh::*;
 use pose::*;
 use pose_bench::*;
 use pose_data::*;
@@ -85,6 +87,11 @@ pub(crate) enum Command {
     /// Render the pose benchmark's objects over training backgrounds as a
     /// COCO training set (full boxes, visible masks) for `train --coco`.
     PoseData(PoseDataArgs),
+    /// Train a detector of an object from its mesh alone: renders over
+    /// background photographs (viewpoints over the view sphere, lighting,
+    /// occluders, camera noise), one SD-HOP model with a component per
+    /// group of viewpoints.
+    Mesh(MeshArgs),
     /// The occlusion pose benchmark: IRLS, OR-IRLS with the exact mask and
     /// OR-IRLS with the SD-HOP mask on held-out backgrounds; six mean
     /// errors and success rates.
@@ -181,6 +188,7 @@ pub fn main() -> ExitCode {
         Command::Detect(a) => run_detect(a),
         Command::Pose(a) => run_pose(a),
         Command::PoseData(a) => run_pose_data(a),
+        Command::Mesh(a) => run_mesh(a),
         Command::PoseBench(a) => run_pose_bench(a),
         Command::PoseEval(a) => run_pose_eval(a),
         Command::Demo(a) => run_demo(a),

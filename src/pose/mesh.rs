@@ -182,6 +182,42 @@ impl Mesh {
         })
     }
 
+    /// The vertex colours of a PLY file (`red`, `green`, `blue`, 0-255 as
+    /// integers or 0-1 as floats), `None` when the vertices have none.
+    pub fn ply_vertex_colours(bytes: &[u8]) -> Result<Option<Vec<[f32; 3]>>, PoseError> {
+        use ply_rs_bw::parser::Parser;
+        use ply_rs_bw::ply::{DefaultElement, Property};
+        if !bytes.starts_with(b"ply") {
+            return Ok(None);
+        }
+        let parser = Parser::<DefaultElement>::new();
+        let mut reader = BufReader::new(bytes);
+        let ply = parser
+            .read_ply(&mut reader)
+            .map_err(|e| bad(format!("PLY: {e}")))?;
+        let Some(vertices) = ply.payload.get("vertex") else {
+            return Ok(None);
+        };
+        let channel = |p: Option<&Property>| -> Option<f32> {
+            match p? {
+                Property::UChar(v) => Some(f32::from(*v)),
+                Property::UShort(v) => Some(f32::from(*v) / 257.0),
+                Property::Float(v) => Some(v.clamp(0.0, 1.0) * 255.0),
+                Property::Double(v) => Some((v.clamp(0.0, 1.0) * 255.0) as f32),
+                _ => None,
+            }
+        };
+        let mut out = Vec::with_capacity(vertices.len());
+        for v in vertices {
+            let rgb = ["red", "green", "blue"].map(|c| channel(v.get(c)));
+            match rgb {
+                [Some(r), Some(g), Some(b)] => out.push([r, g, b]),
+                _ => return Ok(None),
+            }
+        }
+        Ok(Some(out))
+    }
+
     /// The mesh as OBJ text.
     pub fn to_obj(&self) -> String {
         let mut s = String::new();

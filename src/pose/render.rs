@@ -54,20 +54,7 @@ pub fn render(
     // normals): smooth across the facets of a rounded surface, a step at
     // a crease.
     let shade = |f: usize, x: usize, y: usize| -> f32 {
-        let t = mesh.triangles[f];
-        let p = t.map(|i| cam[i as usize]);
-        let s = p.map(|q| k.project(&q).unwrap_or_default());
-        let c = nalgebra::Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
-        let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
-        let (w0, w1) = if area.abs() < 1e-12 {
-            (1.0 / 3.0, 1.0 / 3.0)
-        } else {
-            (
-                (s[1] - c).perp(&(s[2] - c)) / area,
-                (s[2] - c).perp(&(s[0] - c)) / area,
-            )
-        };
-        let w = [w0, w1, 1.0 - w0 - w1].map(|v| v.clamp(0.0, 1.0));
+        let w = pixel_weights(k, &cam, mesh.triangles[f], x, y);
         let n = corners[f][0] * w[0] + corners[f][1] * w[1] + corners[f][2] * w[2];
         let n = pose.rotation * n.try_normalize(1e-12).unwrap_or_else(Vector3::z);
         (40.0 + 200.0 * n.dot(&light).abs()) as f32
@@ -141,6 +128,108 @@ pub fn render(
         visible,
         occluded_fraction,
     })
+}
+
+/// The (screen-space) barycentric weights of pixel `(x, y)`'s centre in
+/// triangle `t` of the camera-frame vertices `cam`, clamped to the
+/// triangle.
+fn pixel_weights(
+    k: &Intrinsics,
+    cam: &[Vector3<f64>],
+    t: [u32; 3],
+    x: usize,
+    y: usize,
+) -> [f64; 3] {
+    let s = t.map(|i| k.project(&cam[i as usize]).unwrap_or_default());
+    let c = nalgebra::Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+    let area = (s[1] - s[0]).perp(&(s[2] - s[0]));
+    let (w0, w1) = if area.abs() < 1e-12 {
+        (1.0 / 3.0, 1.0 / 3.0)
+    } else {
+        (
+            (s[1] - c).perp(&(s[2] - c)) / area,
+            (s[2] - c).perp(&(s[0] - c)) / area,
+        )
+    };
+    [w0, w1, 1.0 - w0 - w1].map(|v| v.clamp(0.0, 1.0))
+}
+
+/// Lighting of a coloured render: Lambert's law with a directional light
+/// plus an ambient share, times a per-channel gain.
+#[derive(Clone, Copy, Debug)]
+pub struct Lighting {
+    /// Direction the light travels, in the camera frame (`+z`: from the
+    /// camera into the scene).
+    pub light: Vector3<f64>,
+    pub ambient: f64,
+    pub gain: [f64; 3],
+}
+
+/// A mesh rendered with its vertex colours (grey without), shaded by
+/// `lighting` with smooth normals: the colour of every pixel the object
+/// covers (row-major, zero elsewhere) and its silhouette.
+pub fn render_colours(
+    mesh: &Mesh,
+    colours: Option<&[[f32; 3]]>,
+    k: &Intrinsics,
+    pose: &Pose,
+    width: usize,
+    height: usize,
+    lighting: &Lighting,
+) -> Result<(Vec<[f32; 3]>, Mask), VisionError> {
+    let raster = rasterize(
+        &mesh.vertices,
+        &mesh.triangles,
+        k,
+        pose,
+        width,
+        height,
+        false,
+        &Deadline::NONE,
+    )
+    .map_err(|_| VisionError::DeadlineExceeded)?;
+    let corners = corner_normals(mesh, SMOOTH_DEGREES);
+    let cam: Vec<Vector3<f64>> = mesh.vertices.iter().map(|v| pose.transform(v)).collect();
+    let light = lighting
+        .light
+        .try_normalize(1e-12)
+        .unwrap_or_else(Vector3::z);
+    let mut out = vec![[0.0f32; 3]; width * height];
+    let mut mask = Mask::new(width, height);
+    for y in 0..height {
+        for x in 0..width {
+            let Some(f) = raster.face_at(x, y) else {
+                continue;
+            };
+            let f = f as usize;
+            let t = mesh.triangles[f];
+            let w = pixel_weights(k, &cam, t, x, y);
+            let n = corners[f][0] * w[0] + corners[f][1] * w[1] + corners[f][2] * w[2];
+            let n = pose.rotation * n.try_normalize(1e-12).unwrap_or_else(Vector3::z);
+            // Light on the side facing the camera (normals of thin or
+            // badly oriented meshes may point away).
+            let n = if n.z > 0.0 { -n } else { n };
+            let lit = lighting.ambient + (1.0 - lighting.ambient) * n.dot(&-light).max(0.0);
+            let base = match colours {
+                Some(c) => {
+                    let mut v = [0.0f64; 3];
+                    for (j, &vi) in t.iter().enumerate() {
+                        let cv = c.get(vi as usize).copied().unwrap_or([180.0; 3]);
+                        for ch in 0..3 {
+                            v[ch] += w[j] * f64::from(cv[ch]);
+                        }
+                    }
+                    v
+                }
+                None => [180.0; 3],
+            };
+            out[y * width + x] = std::array::from_fn(|ch| {
+                (base[ch] * lit * lighting.gain[ch]).clamp(0.0, 255.0) as f32
+            });
+            mask.set(x, y, true);
+        }
+    }
+    Ok((out, mask))
 }
 
 /// Faces meeting at less than this (degrees) are shaded as one smooth

@@ -20,6 +20,7 @@
 
 pub mod ko8;
 pub mod loss;
+pub mod mesh;
 pub mod qp;
 
 use std::collections::HashMap;
@@ -692,6 +693,7 @@ pub fn train_model(
                 label: label.to_string(),
                 rows,
                 cols,
+                direction: None,
             })
             .collect(),
         provenance: serde_json::json!({

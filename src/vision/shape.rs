@@ -62,6 +62,55 @@ pub fn learn_colours<'a>(
     (n > 0.0).then(|| h.iter().map(|v| (v / n) as f32).collect())
 }
 
+/// The normalised colour histogram of a whole image (every other pixel in
+/// each direction).
+pub fn image_colours(img: &ColorImage) -> Vec<f32> {
+    let mut h = vec![0.0f64; COLOUR_BINS * COLOUR_BINS * COLOUR_BINS];
+    for y in (0..img.height()).step_by(2) {
+        for x in (0..img.width()).step_by(2) {
+            h[colour_bin(img, x, y)] += 1.0;
+        }
+    }
+    let n: f64 = h.iter().sum::<f64>().max(1.0);
+    h.iter().map(|v| (v / n) as f32).collect()
+}
+
+/// Largest magnitude of a pixel's colour log ratio in
+/// [`colour_agreement`].
+pub const AGREEMENT_CLAMP: f64 = 3.0;
+
+/// How much more the pixels of `mask` look like the object's colours
+/// (`object`, a normalised histogram) than like the image's (`image`):
+/// the mean over the mask of `ln((p_obj + e) / (p_img + e))`, clamped to
+/// +-[`AGREEMENT_CLAMP`] per pixel; 0 for an empty mask.
+pub fn colour_agreement(img: &ColorImage, mask: &Mask, object: &[f32], image: &[f32]) -> f64 {
+    let e = 0.5 / object.len().max(1) as f64;
+    let (mut sum, mut n) = (0.0, 0usize);
+    if (img.width(), img.height()) != (mask.width, mask.height) {
+        return 0.0;
+    }
+    for y in 0..mask.height {
+        for x in 0..mask.width {
+            if mask.get(x, y) {
+                let b = colour_bin(img, x, y);
+                let (o, i) = (
+                    object.get(b).copied().unwrap_or(0.0),
+                    image.get(b).copied().unwrap_or(0.0),
+                );
+                sum += ((f64::from(o) + e) / (f64::from(i) + e))
+                    .ln()
+                    .clamp(-AGREEMENT_CLAMP, AGREEMENT_CLAMP);
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        0.0
+    } else {
+        sum / n as f64
+    }
+}
+
 impl ShapeModel {
     /// A model of `width x height` pixels from training examples: each a
     /// visible mask over its image and the full-extent box `(x, y, w, h)`
@@ -218,5 +267,40 @@ mod tests {
         assert_eq!(m.at(0.02, 0.02), 0.0);
         assert_eq!(m.at(1.2, 0.5), 0.0);
         assert!(ShapeModel::learn(20, 20, std::iter::empty()).is_none());
+    }
+
+    /// A red object on a green image: its own pixels agree with the
+    /// object's colours, the background's do not.
+    #[test]
+    fn colour_agreement_tells_object_colours_from_the_image() {
+        let (w, h) = (20usize, 10usize);
+        let mut data = Vec::new();
+        for _y in 0..h {
+            for x in 0..w {
+                data.extend_from_slice(if x < 5 {
+                    &[220.0, 30.0, 30.0]
+                } else {
+                    &[30.0, 200.0, 40.0]
+                });
+            }
+        }
+        let img = ColorImage::new(w, h, data).unwrap();
+        let mut red = Mask::new(w, h);
+        let mut green = Mask::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                red.set(x, y, x < 5);
+                green.set(x, y, x >= 10);
+            }
+        }
+        let object = learn_colours([(&img, &red)]).unwrap();
+        let image = image_colours(&img);
+        let on = colour_agreement(&img, &red, &object, &image);
+        let off = colour_agreement(&img, &green, &object, &image);
+        assert!(on > 1.0 && off < -1.0, "{on} {off}");
+        assert_eq!(
+            colour_agreement(&img, &Mask::new(w, h), &object, &image),
+            0.0
+        );
     }
 }

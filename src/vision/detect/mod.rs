@@ -60,6 +60,13 @@ pub struct DetectParams {
     /// Skip locations whose bound shows they cannot matter.
     pub prune: bool,
     pub refine: RefineParams,
+    /// Weight of the colour agreement added to a detection's score: the
+    /// mean over its visible mask of the log ratio of the object's learned
+    /// colours to the image's (see [`crate::vision::shape::colour_agreement`]);
+    /// 0 (the default): the SD-HOP score alone. The threshold applies to
+    /// the score before it.
+    #[serde(default)]
+    pub colour_weight: f64,
     /// Only boxes about here (a request's setting, never a model's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub region: Option<Region>,
@@ -89,6 +96,7 @@ impl Default for DetectParams {
             max_truncation: 0.5,
             prune: true,
             refine: RefineParams::default(),
+            colour_weight: 0.0,
             region: None,
             deadline: Deadline::NONE,
         }
@@ -103,6 +111,8 @@ impl DetectParams {
             && (0.0..1.0).contains(&self.max_truncation)
             && self.refine.fill.is_finite()
             && self.refine.clear.is_finite()
+            && self.colour_weight.is_finite()
+            && self.colour_weight >= 0.0
             && self.region.is_none_or(|r| {
                 let (x, y, w, h) = r.bbox;
                 x.is_finite()

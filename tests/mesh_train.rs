@@ -1,0 +1,184 @@
+//! `sdhop-train mesh` end to end on data the test makes itself: a
+//! vertex-coloured box mesh and generated backgrounds. The model it writes
+//! must load, carry a viewing direction per component, and find the box
+//! in renders it never saw; bad input ends with exit status 2.
+
+use std::path::Path;
+
+use indicatif::ProgressBar;
+use sdhop::model::Model;
+use sdhop::pose::mesh::Mesh;
+use sdhop::pose::render::background;
+use sdhop::train::mesh::{render_set, RenderParams};
+use sdhop::vision::detect::{box_iou, DetectParams, Detector};
+use sdhop::vision::image::ColorImage;
+use sdhop::vision::pyramid::FeaturePyramid;
+
+/// An ASCII PLY of a box with one colour per vertex (a red top, a blue
+/// bottom: the renders must show colour for the colour model to learn).
+fn coloured_box_ply() -> String {
+    let mesh = Mesh::cuboid(60.0, 40.0, 30.0);
+    let mut s = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        mesh.vertices.len(),
+        mesh.triangles.len()
+    );
+    for v in &mesh.vertices {
+        let (r, b) = if v.z > 0.0 { (220, 40) } else { (40, 200) };
+        s.push_str(&format!("{} {} {} {r} 90 {b}\n", v.x, v.y, v.z));
+    }
+    for t in &mesh.triangles {
+        s.push_str(&format!("3 {} {} {}\n", t[0], t[1], t[2]));
+    }
+    s
+}
+
+fn write_backgrounds(dir: &Path, n: usize) {
+    std::fs::create_dir_all(dir).unwrap();
+    for i in 0..n {
+        let img = background(640, 480, 100 + i as u64).unwrap();
+        img.to_rgb8()
+            .save(dir.join(format!("bg{i:02}.png")))
+            .unwrap();
+    }
+}
+
+#[test]
+fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-mesh-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let ply = dir.join("box.ply");
+    std::fs::write(&ply, coloured_box_ply()).unwrap();
+    let bgs = dir.join("bg");
+    write_backgrounds(&bgs, 8);
+    let out = dir.join("models/box.safetensors");
+    let work = dir.join("work");
+    let status = std::process::Command::new(bin)
+        .args([
+            "mesh",
+            "--mesh",
+            ply.to_str().unwrap(),
+            "--name",
+            "box",
+            "--backgrounds",
+            bgs.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--work",
+            work.to_str().unwrap(),
+            "--renders",
+            "80",
+            "--components",
+            "2",
+            "--negatives",
+            "6",
+            "--max-passes",
+            "3",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let coco: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(work.join("coco.json")).unwrap()).unwrap();
+    assert_eq!(coco["annotations"].as_array().unwrap().len(), 80);
+    let model = Model::load(&out).unwrap();
+    assert_eq!(model.meta.name, "box");
+    assert_eq!(model.meta.viewpoints.len(), 2);
+    for v in &model.meta.viewpoints {
+        let d = v.direction.expect("a viewing direction per component");
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        assert!((n - 1.0).abs() < 1e-6);
+    }
+    assert!(model.shapes.iter().all(|s| s.is_some()));
+    // Renders with another seed over other backgrounds: the top
+    // detection is the box in most of them.
+    let mesh = Mesh::parse(&std::fs::read(&ply).unwrap()).unwrap();
+    let colours = Mesh::ply_vertex_colours(&std::fs::read(&ply).unwrap()).unwrap();
+    assert!(colours.is_some());
+    let others: Vec<ColorImage> = (0..3)
+        .map(|i| background(640, 480, 900 + i).unwrap())
+        .collect();
+    let test = render_set(
+        &mesh,
+        colours.as_deref(),
+        "box",
+        &others,
+        &RenderParams {
+            renders: 10,
+            components: 1,
+            seed: 77,
+            ..RenderParams::default()
+        },
+        &dir.join("test"),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let det = Detector::new(&model.views).unwrap();
+    let params = DetectParams {
+        threshold: -1e9,
+        max_detections: 1,
+        ..model.meta.detection
+    };
+    let mut hits = 0;
+    for s in &test.samples {
+        let img = sdhop::data::load_image(&s.image).unwrap();
+        let pyr =
+            FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        let (dets, _) = det.detect(&pyr, &params).unwrap();
+        let a = s.annotation.as_ref().unwrap();
+        if dets.first().is_some_and(|d| box_iou(d.bbox, a.bbox) >= 0.5) {
+            hits += 1;
+        }
+    }
+    assert!(hits >= 7, "{hits} of 10 new renders found");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A file that is no mesh, or a bad range, ends with status 2 and a
+/// message naming the problem.
+#[test]
+fn mesh_training_refuses_bad_input_with_status_2() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-mesh-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let junk = dir.join("junk.ply");
+    std::fs::write(&junk, "ply\nthis is not a mesh\n").unwrap();
+    let bgs = dir.join("bg");
+    write_backgrounds(&bgs, 1);
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "mesh",
+            "--name",
+            "x",
+            "--backgrounds",
+            bgs.to_str().unwrap(),
+            "--out",
+            "/nonexistent-dir-sdhop/x.safetensors",
+        ];
+        args.extend_from_slice(extra);
+        let out = std::process::Command::new(bin)
+            .args(&args)
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (code, err) = run(&["--mesh", junk.to_str().unwrap()]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("junk.ply"), "{err}");
+    let (code, err) = run(&["--mesh", junk.to_str().unwrap(), "--elevation", "80,10"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("elevation"), "{err}");
+    let (code, err) = run(&["--mesh", junk.to_str().unwrap(), "--size", "300,400"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("size"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
