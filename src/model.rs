@@ -83,6 +83,12 @@ pub struct ViewMeta {
     /// trained from a mesh.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub direction: Option<[f64; 3]>,
+    /// Representative rotations (camera from object, unit quaternions
+    /// `[w, x, y, z]`) of the component's training views, for models
+    /// trained from a mesh: the start poses of `POST /pose` without an
+    /// initial pose.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rotations: Vec<[f64; 4]>,
 }
 
 /// JSON metadata of a weights file.
@@ -460,6 +466,7 @@ mod tests {
                 rows: 2,
                 cols: 3,
                 direction: None,
+                rotations: Vec::new(),
             }],
             provenance: serde_json::json!({"made_by": "test"}),
         };

@@ -384,6 +384,7 @@ pub fn hand_model(
             rows: obj.rows,
             cols: obj.cols,
             direction: None,
+            rotations: Vec::new(),
         }],
         provenance: serde_json::json!({
             "source": "hand-built from the HOG of a synthetic object (no training)",

@@ -311,6 +311,15 @@ async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &
     };
     let jpeg_mask = encode(&sc, image::ImageFormat::Jpeg);
     let with_mask = |p: Value| pose_params(&plain.start, p);
+    // Params without an initial pose.
+    let no_start = |extra: Value| {
+        let mut p =
+            serde_json::json!({"intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy}});
+        for (k, v) in extra.as_object().unwrap() {
+            p[k] = v.clone();
+        }
+        p.to_string()
+    };
     // The unoccluded image with this mesh, mask and params.
     let form = |mesh: &[u8], mask: Option<&[u8]>, params: &str| {
         pose_form(Some(&plain.png), Some(mesh), mask, Some(params))
@@ -399,6 +408,20 @@ async fn pose_statuses(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &
         (
             "mask not a PNG",
             post("").multipart(form(&ply, Some(&jpeg_mask), &good)),
+            422,
+        ),
+        (
+            "no initial pose and no model to detect it",
+            post("").multipart(form(&ply, None, &no_start(serde_json::json!({})))),
+            422,
+        ),
+        (
+            "no initial pose and a model not trained from a mesh",
+            post("").multipart(form(
+                &ply,
+                None,
+                &no_start(serde_json::json!({"model": "synthetic"})),
+            )),
             422,
         ),
         (

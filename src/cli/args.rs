@@ -11,7 +11,7 @@ pub(crate) struct TrainSettings {
     /// the docs: c, k, template_scale, template, pyramid, segmentation,
     /// max_truncation, epsilon, max_passes, max_inner, init_locations,
     /// mining_passes, mining_budget, cache_size, positive_share, loss, seg_weight, hop,
-    /// pairwise, pair_mode, seed, threshold).
+    /// pairwise, occlusion, pair_mode, seed, threshold).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
     /// Regularisation constant C.
@@ -69,6 +69,10 @@ pub(crate) struct TrainSettings {
     /// Ablation: no pairwise term.
     #[arg(long)]
     pub(crate) no_pairwise: bool,
+    /// Ablation: no occlusion reasoning (plain HOG templates: every cell
+    /// visible, the loss compares boxes only).
+    #[arg(long)]
+    pub(crate) no_occlusion: bool,
     /// Ablation: pairwise terms only between neighbouring cells along an
     /// image edge, as Gao et al. 2011 (default: every 4-connected pair).
     #[arg(long)]
@@ -151,6 +155,7 @@ impl TrainSettings {
         }
         p.hop &= !self.no_hop;
         p.pairwise &= !self.no_pairwise;
+        p.occlusion &= !self.no_occlusion;
         if self.edge_pairwise {
             p.pair_mode = PairwiseMode::Edges;
         }

@@ -39,7 +39,7 @@ pub(crate) struct MeshArgs {
     #[arg(long, default_value_t = RenderParams::default().roll)]
     pub(crate) roll: f64,
     /// Range of the object's longest box side in the renders, pixels.
-    #[arg(long, value_parser = parse_pair, default_value = "80,180")]
+    #[arg(long, value_parser = parse_pair, default_value = "40,110")]
     pub(crate) size: [f64; 2],
     /// Share of the renders with an occluder.
     #[arg(long, default_value_t = RenderParams::default().occluded_share)]
@@ -241,13 +241,13 @@ fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
 pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let start = std::time::Instant::now();
     let (mut params, _) = args.settings.params()?;
-    // The templates are learned at 80-180 px (smaller ones fit their own
-    // training renders badly: 50% top-1 at 40-110 px against 87% at
-    // 90-200 px); upsampled levels find objects down to a third of that
-    // (training must see those levels too: a model trained up to 1.4 and
-    // run up to 2.5 scored AUC 0.000 on LM-O ape, its upsampled levels
-    // full of false positives), several octaves cover a wide range of
-    // sizes (unless the flags or the config say otherwise).
+    // Templates of about 12 cells (smaller ones fit even their own
+    // training renders badly: 50% top-1 with 5-8 cells); upsampled levels
+    // find objects down to 40% of that (training must see those levels
+    // too: a model trained up to 1.4 and run up to 2.5 scored AUC 0.000 on
+    // LM-O ape, its upsampled levels full of false positives), several
+    // octaves cover a wide range of sizes (unless the flags or the config
+    // say otherwise).
     if args.settings.levels_per_octave.is_none() && args.settings.config.is_none() {
         params.pyramid.levels_per_octave = 5;
     }
@@ -256,6 +256,15 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     }
     if args.settings.min_scale.is_none() && args.settings.config.is_none() {
         params.pyramid.min_scale = 0.125;
+    }
+    // Objects in photographs are small (LM-O: 37-343 px, median about
+    // 60), and the detector meets them on upsampled levels: the renders
+    // are drawn at such sizes and the templates 1.4 times larger, so that
+    // training sees the objects on the same upsampled levels (LM-O ape:
+    // 80-180 px renders at template scale 0.8 AUC 0.259, 40-110 px at 1.4
+    // AUC 0.319).
+    if args.settings.template_scale.is_none() && args.settings.config.is_none() {
+        params.template_scale = 1.4;
     }
     // The renders never cut the object at the image border, so the model
     // learns nothing about truncated boxes: allowing them, boxes hanging
@@ -342,8 +351,15 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         "{}: full-search violations {:?}, min-cuts {:?}",
         args.name, report.full_violation, report.full_min_cuts
     );
-    for (view, dir) in model.meta.viewpoints.iter_mut().zip(&set.directions) {
+    for ((view, dir), rots) in model
+        .meta
+        .viewpoints
+        .iter_mut()
+        .zip(&set.directions)
+        .zip(&set.rotations)
+    {
         view.direction = Some(*dir);
+        view.rotations = rots.clone();
     }
     let pb = progress_bar(0, &format!("{}: colour weight", args.name));
     let (weight, table) = choose_colour_weight(

@@ -332,7 +332,7 @@ pub fn run(
         ] {
             let params = PoseParams {
                 intrinsics,
-                initial_pose: PoseJson::from(&case.start),
+                initial_pose: Some(PoseJson::from(&case.start)),
                 model: None,
                 mask: Some(source),
                 max_iterations: None,

@@ -139,8 +139,11 @@ pub async fn pose(
     let image = parts.image.ok_or_else(|| missing("image"))?;
     let mesh = parts.mesh.ok_or_else(|| missing("mesh"))?;
     let params = parse_params(&parts.params.ok_or_else(|| missing("params"))?)?;
-    let model = match (params.mask, &params.model) {
-        (Some(MaskSource::Detect), Some(name)) => Some(Arc::clone(
+    // A detection is needed for its mask, or for the start poses when
+    // there is no initial pose.
+    let needs_detection = params.mask == Some(MaskSource::Detect) || params.initial_pose.is_none();
+    let model = match (needs_detection, &params.model) {
+        (true, Some(name)) => Some(Arc::clone(
             &state
                 .model(name)
                 .ok_or_else(|| ApiError::UnknownModel(name.clone()))?

@@ -14,7 +14,7 @@ use super::{InferError, Job, PoseTask, Shared, Work};
 use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
 use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions};
-use crate::pose::api::estimate_with;
+use crate::pose::api::{estimate_with, Detected};
 use crate::pose::PoseError;
 use crate::vision::detect::DenseBounds;
 use crate::vision::image::ColorImage;
@@ -218,13 +218,16 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                             model,
                         } = *task;
                         let found = match &model {
-                            Some(m) => Some(detect(
-                                &[m.as_ref()],
-                                &DetectOptions {
-                                    deadline,
-                                    ..params.detect_options(&mesh)
-                                },
-                            )?),
+                            Some(m) => Some(Detected::from_response(
+                                detect(
+                                    &[m.as_ref()],
+                                    &DetectOptions {
+                                        deadline,
+                                        ..params.detect_options(&mesh)
+                                    },
+                                )?,
+                                m,
+                            )),
                             None => None,
                         };
                         estimate_with(

@@ -5,8 +5,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::geometry::{projected_box, Intrinsics, Pose};
-use super::irls::{refine_until, IrlsParams};
+use super::irls::{refine_until, IrlsParams, PoseResult};
 use super::mesh::Mesh;
+use super::start::start_poses;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
 use crate::pipeline::{detect_image, DetectOptions, DetectResponse, DetectionJson, MaskMode};
@@ -49,7 +50,11 @@ pub enum MaskSource {
 #[serde(deny_unknown_fields)]
 pub struct PoseParams {
     pub intrinsics: Intrinsics,
-    pub initial_pose: PoseJson,
+    /// Where to start. Without it, `model` must name a detector trained
+    /// from this mesh (`sdhop-train mesh`): the object is detected and
+    /// the start poses come from the detections (see [`NO_START_DETECTIONS`]).
+    #[serde(default)]
+    pub initial_pose: Option<PoseJson>,
     /// The detector model whose mask `mask: "detect"` uses.
     #[serde(default)]
     pub model: Option<String>,
@@ -107,6 +112,13 @@ pub struct PoseResponse {
     pub covariance: [[f64; 6]; 6],
     pub mask_source: MaskUsed,
     pub detection: Option<DetectionJson>,
+    /// Without an initial pose: the start pose the answer was refined
+    /// from (placed on the detection's box), and how many starts were
+    /// refined.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_pose: Option<PoseJson>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub starts_refined: Option<usize>,
     /// How well the image supports the answered pose: the share of its
     /// visible model edge samples (in the mask) with a compatible image
     /// edge within 1.5 px (see the README for the cut-off measured on
@@ -145,6 +157,61 @@ pub fn detect_options(expected: Option<(f64, f64, f64, f64)>) -> DetectOptions {
     }
 }
 
+/// Without an initial pose: the best detections tried.
+pub const NO_START_DETECTIONS: usize = 2;
+/// Without an initial pose: the start poses refined per detection (the
+/// component's rotations whose silhouettes agree best with its mask).
+pub const NO_START_POSES: usize = 3;
+/// Without an initial pose, the default uncertainty of the start poses
+/// (rotation, degrees; translation as a share of the start's depth):
+/// wider than a client's start, since a component's rotations are some
+/// 15 degrees apart and the depth from a detection's box is off by up to
+/// a pyramid level.
+pub const NO_START_SIGMA_DEGREES: f64 = 15.0;
+pub const NO_START_SIGMA_DEPTH: f64 = 0.1;
+
+/// The detections a pose request needs and the start rotations of the
+/// model's components (see [`crate::model::ViewMeta::rotations`]).
+pub struct Detected {
+    pub response: DetectResponse,
+    pub view_rotations: Vec<Vec<[f64; 4]>>,
+}
+
+impl Detected {
+    /// The detections of `model` in `img` for `params`.
+    pub fn run(
+        img: &ColorImage,
+        model: &Model,
+        params: &PoseParams,
+        mesh: &Mesh,
+        deadline: Deadline,
+    ) -> Result<Self, PoseError> {
+        let opts = DetectOptions {
+            deadline,
+            ..params.detect_options(mesh)
+        };
+        let response = detect_image(img, &[model], &opts).map_err(|e| match e {
+            crate::vision::VisionError::DeadlineExceeded => PoseError::DeadlineExceeded,
+            e => PoseError::InvalidParameter(e.to_string()),
+        })?;
+        Ok(Self::from_response(response, model))
+    }
+
+    /// The detections found elsewhere (the service's backend), with the
+    /// model's rotations.
+    pub fn from_response(response: DetectResponse, model: &Model) -> Self {
+        Self {
+            response,
+            view_rotations: model
+                .meta
+                .viewpoints
+                .iter()
+                .map(|v| v.rotations.clone())
+                .collect(),
+        }
+    }
+}
+
 /// The largest projected size of the mesh at the initial pose, in image
 /// sizes (each side): a larger projection is refused rather than drawn,
 /// since the work of a refinement grows with it.
@@ -158,7 +225,8 @@ pub const MIN_PROJECTED_PX: f64 = 4.0;
 /// a rotation), the refinement settings and where the mask comes from.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Checked {
-    pub initial: Pose,
+    /// `None`: the start poses come from the detections.
+    pub initial: Option<Pose>,
     pub irls: IrlsParams,
     pub source: MaskSource,
 }
@@ -168,8 +236,18 @@ impl PoseParams {
     /// [`detect_options`]): around the mesh's box at the initial pose,
     /// anywhere when the initial pose is unusable (the request then fails
     /// its checks).
+    ///
+    /// Without an initial pose: the [`NO_START_DETECTIONS`] best
+    /// detections anywhere, at the model's threshold.
     pub fn detect_options(&self, mesh: &Mesh) -> DetectOptions {
-        let expected = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)
+        let Some(start) = &self.initial_pose else {
+            return DetectOptions {
+                max_detections: Some(NO_START_DETECTIONS),
+                masks: MaskMode::Refined,
+                ..DetectOptions::default()
+            };
+        };
+        let expected = Pose::from_client(start.rotation, start.translation)
             .ok()
             .and_then(|p| projected_box(&mesh.vertices, &self.intrinsics, &p));
         detect_options(expected)
@@ -184,9 +262,20 @@ impl PoseParams {
         image_size: (usize, usize),
         mask: Option<&Mask>,
     ) -> Result<Checked, PoseError> {
-        let initial = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)?;
+        let initial = self
+            .initial_pose
+            .map(|p| Pose::from_client(p.rotation, p.translation))
+            .transpose()?;
         self.intrinsics.validate()?;
         let mut irls = IrlsParams::default();
+        if initial.is_none() {
+            if self.model.is_none() {
+                return Err(PoseError::InvalidParameter(
+                    "without initial_pose, model must name a detector of the object (trained from its mesh by sdhop-train mesh): the start poses come from its detections".into(),
+                ));
+            }
+            irls.start_sigma_degrees = NO_START_SIGMA_DEGREES;
+        }
         if let Some(n) = self.max_iterations {
             irls.max_iterations = n;
         }
@@ -199,6 +288,8 @@ impl PoseParams {
         irls.validate()?;
         let source = self.mask.unwrap_or(if mask.is_some() {
             MaskSource::Provided
+        } else if initial.is_none() {
+            MaskSource::Detect
         } else {
             MaskSource::None
         });
@@ -246,7 +337,11 @@ impl PoseParams {
         mesh: &Mesh,
         image_size: (usize, usize),
     ) -> Result<(), PoseError> {
-        let pose = Pose::from_client(self.initial_pose.rotation, self.initial_pose.translation)?;
+        let Some(start) = &self.initial_pose else {
+            // The start poses are placed on detections inside the image.
+            return self.intrinsics.validate();
+        };
+        let pose = Pose::from_client(start.rotation, start.translation)?;
         self.intrinsics.validate()?;
         let nearest = mesh
             .vertices
@@ -301,8 +396,7 @@ pub fn estimate(
                 .iter()
                 .find(|m| m.meta.name == name)
                 .ok_or_else(|| PoseError::UnknownModel(name.to_string()))?;
-            detect_image(img, &[model], &params.detect_options(mesh))
-                .map_err(|e| PoseError::InvalidParameter(e.to_string()))
+            Detected::run(img, model, params, mesh, Deadline::NONE)
         },
         Deadline::NONE,
     )
@@ -311,6 +405,15 @@ pub fn estimate(
 /// [`estimate`] with the detection left to `detect`, which runs the named
 /// model on the image with [`PoseParams::detect_options`] (the service runs
 /// it on its backend's pyramids); gives up once `deadline` has passed.
+///
+/// With an initial pose, OR-IRLS refines it (with the best detection's
+/// mask for `mask: "detect"`). Without, each of the
+/// [`NO_START_DETECTIONS`] best detections gives [`NO_START_POSES`] start
+/// poses (its component's rotations placed on its box, ranked by the
+/// agreement of their silhouettes with its mask); OR-IRLS refines each
+/// with the detection's mask (or the client's, or none, as `mask` says)
+/// and the answer with the best sum of edge and colour agreement (`score`
+/// plus `region_score`) wins.
 pub fn estimate_with<F>(
     img: &ColorImage,
     mesh: &Mesh,
@@ -320,17 +423,23 @@ pub fn estimate_with<F>(
     deadline: Deadline,
 ) -> Result<PoseResponse, PoseError>
 where
-    F: FnOnce(&str) -> Result<DetectResponse, PoseError>,
+    F: FnOnce(&str) -> Result<Detected, PoseError>,
 {
     let checked = params.check((img.width(), img.height()), mask.as_ref())?;
     params.check_projection(mesh, (img.width(), img.height()))?;
     let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
+    let name = params.model.as_deref().unwrap_or_default();
+    let Some(initial) = checked.initial else {
+        // No start: the detections give them.
+        let found = detect(name)?;
+        return from_detections(img, mesh, &edges, params, &checked, mask, found, deadline);
+    };
     let (mask, used, detection) = match checked.source {
         MaskSource::None => (None, MaskUsed::None, None),
         MaskSource::Provided => (mask, MaskUsed::Provided, None),
         MaskSource::Detect => {
-            let name = params.model.as_deref().unwrap_or_default();
             let det = detect(name)?
+                .response
                 .detections
                 .into_iter()
                 .next()
@@ -347,13 +456,23 @@ where
         img,
         &edges,
         &params.intrinsics,
-        &checked.initial,
+        &initial,
         mask.as_ref(),
         &checked.irls,
         deadline,
     )?;
+    Ok(response(&r, used, detection, None))
+}
+
+/// The answer of a refinement.
+fn response(
+    r: &PoseResult,
+    used: MaskUsed,
+    detection: Option<DetectionJson>,
+    start: Option<(&Pose, usize)>,
+) -> PoseResponse {
     let pose = PoseJson::from(&r.pose);
-    Ok(PoseResponse {
+    PoseResponse {
         pose: PoseOut {
             rotation: pose.rotation,
             translation: pose.translation,
@@ -367,12 +486,104 @@ where
         covariance: r.covariance,
         mask_source: used,
         detection,
+        start_pose: start.map(|(p, _)| PoseJson::from(p)),
+        starts_refined: start.map(|(_, n)| n),
         score: r.agreement,
         start_score: r.start_agreement,
         start_kept: r.start_kept,
         region_score: r.region_agreement,
         start_region_score: r.start_region_agreement,
-    })
+    }
+}
+
+/// The pose from no start: see [`estimate_with`].
+#[allow(clippy::too_many_arguments)]
+fn from_detections(
+    img: &ColorImage,
+    mesh: &Mesh,
+    edges: &EdgeModel,
+    params: &PoseParams,
+    checked: &Checked,
+    client_mask: Option<Mask>,
+    found: Detected,
+    deadline: Deadline,
+) -> Result<PoseResponse, PoseError> {
+    let name = params.model.as_deref().unwrap_or_default();
+    if found.view_rotations.iter().all(Vec::is_empty) {
+        return Err(PoseError::InvalidParameter(format!(
+            "model {name} carries no training views (it was not trained from a mesh by sdhop-train mesh), so it cannot give start poses: send initial_pose"
+        )));
+    }
+    let mut best: Option<(PoseResult, DetectionJson, Pose)> = None;
+    let mut refined = 0usize;
+    for det in found
+        .response
+        .detections
+        .into_iter()
+        .take(NO_START_DETECTIONS)
+    {
+        let det_mask = det.mask.as_ref().and_then(Mask::from_rle);
+        let rotations = found
+            .view_rotations
+            .get(det.viewpoint)
+            .map(Vec::as_slice)
+            .unwrap_or_default();
+        let b = &det.bbox;
+        let starts = start_poses(
+            mesh,
+            &params.intrinsics,
+            (b.x, b.y, b.width, b.height),
+            det_mask.as_ref(),
+            rotations,
+            NO_START_POSES,
+            &deadline,
+        )?;
+        let refine_mask = match checked.source {
+            MaskSource::Detect => det_mask.as_ref(),
+            MaskSource::Provided => client_mask.as_ref(),
+            MaskSource::None => None,
+        };
+        for s in starts {
+            let mut irls = checked.irls;
+            if params
+                .start_uncertainty
+                .and_then(|u| u.translation)
+                .is_none()
+            {
+                irls.start_sigma_translation =
+                    Some(NO_START_SIGMA_DEPTH * s.pose.translation.norm());
+            }
+            let r = match refine_until(
+                img,
+                edges,
+                &params.intrinsics,
+                &s.pose,
+                refine_mask,
+                &irls,
+                deadline,
+            ) {
+                Ok(r) => r,
+                // A start whose object shows too few edges: try the next.
+                Err(PoseError::NotEnoughEdges(_)) => continue,
+                Err(e) => return Err(e),
+            };
+            refined += 1;
+            // Edges and colours both: either alone is fooled by a start
+            // that fits part of the outline (a wrong depth matches the
+            // nearer edges of a box, a wrong turn the colours of a side).
+            let rank = |r: &PoseResult| r.agreement + r.region_agreement;
+            if best.as_ref().is_none_or(|(b, _, _)| rank(&r) > rank(b)) {
+                best = Some((r, det.clone(), s.pose));
+            }
+        }
+    }
+    let (r, det, start) = best.ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
+    let used = match checked.source {
+        MaskSource::Detect => MaskUsed::Detected,
+        MaskSource::Provided => MaskUsed::Provided,
+        MaskSource::None => MaskUsed::None,
+    };
+    Ok(response(&r, used, Some(det), Some((&start, refined))))
 }
 
 /// A mask from an image: non-zero pixels (any channel) are visible.
@@ -400,10 +611,10 @@ mod tests {
                 cx: 320.0,
                 cy: 240.0,
             },
-            initial_pose: PoseJson {
+            initial_pose: Some(PoseJson {
                 rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
                 translation: t,
-            },
+            }),
             model: None,
             mask: None,
             max_iterations: None,

@@ -12,6 +12,7 @@ pub mod irls;
 pub mod mesh;
 pub mod region;
 pub mod render;
+pub mod start;
 
 use thiserror::Error;
 
@@ -34,7 +35,7 @@ pub enum PoseError {
     #[error("no model named {0} is loaded")]
     UnknownModel(String),
     #[error(
-        "model {0} detects nothing where the initial pose puts the object, so there is no mask"
+        "model {0} detects nothing where the request looks for the object (around the initial pose, or anywhere without one), so there is no mask or start pose"
     )]
     NotDetected(String),
     /// The refinement passed its deadline and gave up.

@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::TrainError;
@@ -56,7 +56,7 @@ impl Default for RenderParams {
             components: 4,
             elevation: [0.0, 80.0],
             roll: 20.0,
-            size: [80.0, 180.0],
+            size: [40.0, 110.0],
             occluded_share: 0.3,
             occlusion: [0.1, 0.6],
             width: 320,
@@ -101,6 +101,9 @@ impl RenderParams {
     }
 }
 
+/// Representative rotations kept per component for start poses.
+pub const ROTATIONS_PER_COMPONENT: usize = 32;
+
 /// A rendered training set.
 pub struct MeshSet {
     /// The renders (positives, label = the object's name).
@@ -110,6 +113,9 @@ pub struct MeshSet {
     pub directions: Vec<[f64; 3]>,
     /// The pose of every render (camera from object).
     pub poses: Vec<Pose>,
+    /// Representative rotations of each component (see
+    /// [`representative_rotations`]).
+    pub rotations: Vec<Vec<[f64; 4]>>,
     /// The share of each render's object that the occluder hides.
     pub occluded: Vec<f64>,
 }
@@ -183,6 +189,63 @@ pub fn cluster_directions(dirs: &[Vector3<f64>], k: usize) -> (Vec<usize>, Vec<V
         }
     }
     (assign, centres)
+}
+
+/// The angle (radians) between two rotations.
+fn rotation_angle(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
+    let c = ((a.transpose() * b).trace() - 1.0) / 2.0;
+    c.clamp(-1.0, 1.0).acos()
+}
+
+/// Up to `n` representative rotations of each of `k` components: within
+/// a component, farthest-point sampling over the rotations of its views
+/// (starting from the one nearest to all others), so that they cover the
+/// component's range of views and in-plane rotations evenly. Unit
+/// quaternions `[w, x, y, z]`.
+pub fn representative_rotations(
+    rotations: &[Matrix3<f64>],
+    assign: &[usize],
+    k: usize,
+    n: usize,
+) -> Vec<Vec<[f64; 4]>> {
+    (0..k)
+        .map(|c| {
+            let members: Vec<&Matrix3<f64>> = rotations
+                .iter()
+                .zip(assign)
+                .filter(|(_, &a)| a == c)
+                .map(|(r, _)| r)
+                .collect();
+            let mut chosen: Vec<usize> = Vec::new();
+            // The medoid first: the smallest summed angle to the others.
+            let medoid = (0..members.len()).min_by(|&i, &j| {
+                let si: f64 = members.iter().map(|m| rotation_angle(members[i], m)).sum();
+                let sj: f64 = members.iter().map(|m| rotation_angle(members[j], m)).sum();
+                si.total_cmp(&sj)
+            });
+            let mut nearest = vec![f64::INFINITY; members.len()];
+            let mut next = medoid;
+            while let Some(i) = next {
+                if chosen.len() >= n {
+                    break;
+                }
+                chosen.push(i);
+                for (d, m) in nearest.iter_mut().zip(&members) {
+                    *d = d.min(rotation_angle(members[i], m));
+                }
+                next = (0..members.len())
+                    .filter(|j| !chosen.contains(j))
+                    .max_by(|&a, &b| nearest[a].total_cmp(&nearest[b]));
+            }
+            chosen
+                .into_iter()
+                .map(|i| {
+                    let q = UnitQuaternion::from_matrix(members[i]);
+                    [q.w, q.i, q.j, q.k]
+                })
+                .collect()
+        })
+        .collect()
 }
 
 /// A `width x height` crop of a background at a random place (the
@@ -413,9 +476,12 @@ pub fn render_set(
             an.viewpoint = *a;
         }
     }
+    let rs: Vec<Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
+    let rotations = representative_rotations(&rs, &assign, centres.len(), ROTATIONS_PER_COMPONENT);
     Ok(MeshSet {
         samples,
         directions: centres.iter().map(|c| [c.x, c.y, c.z]).collect(),
+        rotations,
         poses,
         occluded,
     })
@@ -463,6 +529,35 @@ mod tests {
             let up = r * Vector3::z() + t;
             assert!(up.y / up.z < 0.0, "{az} {el}");
         }
+    }
+
+    /// Rotations about one axis from 0 to 90 degrees: two representatives
+    /// are the two ends' neighbourhood, spread apart; a component without
+    /// views has none.
+    #[test]
+    fn representative_rotations_spread_over_the_component() {
+        let rs: Vec<Matrix3<f64>> = (0..=9)
+            .map(|i| {
+                Rotation3::from_axis_angle(&Vector3::z_axis(), (i as f64 * 10.0).to_radians())
+                    .into_inner()
+            })
+            .collect();
+        let assign = vec![0; rs.len()];
+        let reps = representative_rotations(&rs, &assign, 2, 3);
+        assert_eq!(reps.len(), 2);
+        assert!(reps[1].is_empty());
+        let angles: Vec<f64> = reps[0]
+            .iter()
+            .map(|q| 2.0 * q[3].atan2(q[0]).to_degrees())
+            .collect();
+        // The medoid (40 or 50 degrees), then the two ends.
+        assert!((angles[0] - 45.0).abs() <= 5.0 + 1e-9, "{angles:?}");
+        let mut ends = [angles[1], angles[2]];
+        ends.sort_by(f64::total_cmp);
+        assert!(
+            ends[0].abs() < 1e-6 && (ends[1] - 90.0).abs() < 1e-6,
+            "{angles:?}"
+        );
     }
 
     /// Directions from two opposite caps fall into two clusters whose
@@ -529,6 +624,19 @@ mod tests {
         }
         assert!(set.occluded.iter().any(|&f| f > 0.05), "{:?}", set.occluded);
         assert!(set.occluded.contains(&0.0));
+        assert_eq!(set.rotations.len(), 3);
+        for (c, qs) in set.rotations.iter().enumerate() {
+            let members = set
+                .samples
+                .iter()
+                .filter(|s| s.annotation.as_ref().unwrap().viewpoint == c)
+                .count();
+            assert_eq!(qs.len(), members.min(ROTATIONS_PER_COMPONENT));
+            for q in qs {
+                let n: f64 = q.iter().map(|v| v * v).sum();
+                assert!((n - 1.0).abs() < 1e-9);
+            }
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -116,6 +116,10 @@ pub struct TrainParams {
     pub hop: bool,
     /// Train the pairwise term (false: no pairwise ablation).
     pub pairwise: bool,
+    /// Occlusion reasoning (false: the plain-HOG ablation: every cell is
+    /// visible in training and detection, the occlusion filter and the
+    /// visibility prior are unused and the loss compares boxes only).
+    pub occlusion: bool,
     /// Which neighbour pairs carry the pairwise term: every 4-connected
     /// pair (SD-HOP) or only pairs along image edges (the Gao et al. 2011
     /// ablation).
@@ -152,6 +156,7 @@ impl Default for TrainParams {
             seg_weight: 1.0,
             hop: true,
             pairwise: true,
+            occlusion: true,
             pair_mode: PairwiseMode::Grid,
             seed: 1,
             threshold: -0.75,
@@ -257,6 +262,8 @@ pub struct Layout {
     pub shapes: Vec<(usize, usize)>,
     pub k: usize,
     pub pair_mode: PairwiseMode,
+    /// False: the plain-HOG ablation (see [`TrainParams::occlusion`]).
+    pub occlusion: bool,
     offsets: Vec<usize>,
     pub len: usize,
 }
@@ -273,6 +280,7 @@ impl Layout {
             shapes,
             k,
             pair_mode,
+            occlusion: true,
             offsets,
             len,
         }
@@ -354,6 +362,12 @@ impl Layout {
                         vw.w_occ[i * HOG_STRIDE + d] = w[o + (n + i) * HOG_DIM + d] as f32;
                     }
                     vw.w_prior[i] = w[o + 2 * n * HOG_DIM + i] as f32;
+                    if !self.occlusion {
+                        vw.w_prior[i] = PLAIN_HOG_PRIOR;
+                        for d in 0..HOG_DIM {
+                            vw.w_occ[i * HOG_STRIDE + d] = 0.0;
+                        }
+                    }
                 }
                 vw.w_trunc = w[o + 2 * n * HOG_DIM + n] as f32;
                 vw.w_pair = w[self.pair_index(v)].max(0.0) as f32;
@@ -365,6 +379,11 @@ impl Layout {
             .collect()
     }
 }
+
+/// The cost of labelling a cell occluded in a plain-HOG model (no
+/// occlusion reasoning): far above any filter response, so that every
+/// min-cut labels every cell visible.
+pub const PLAIN_HOG_PRIOR: f32 = 1e3;
 
 /// `w_k = a + b k - sum_{j<k} (k - j) c_j` for `k = 0..=K`, with `c_j`
 /// clamped at 0, as `f32` values whose curvature is exactly `c_j >= 0`:
@@ -497,7 +516,8 @@ pub fn train_model(
     let shapes: Vec<(usize, usize)> = (0..n_views)
         .map(|v| template_shape(&positives, v, params))
         .collect::<Result<_, _>>()?;
-    let layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
+    let mut layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
+    layout.occlusion = params.occlusion;
     cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
 
     // Ground truth of every positive: the location with the best box IoU.
@@ -541,6 +561,9 @@ pub fn train_model(
                 let grid = det0.grid(&pyr, &location);
                 let mut cells = Vec::new();
                 cell_truth(&grid, &visible, &mut cells);
+                if !params.occlusion {
+                    cells.iter_mut().for_each(|c| *c = true);
+                }
                 let mut psi = vec![0.0; layout.len];
                 let (problem, feats, truncated) = det0.problem_at(&pyr, &location);
                 let j = joint_feature(&feats, &cells, &problem, truncated);
@@ -694,6 +717,7 @@ pub fn train_model(
                 rows,
                 cols,
                 direction: None,
+                rotations: Vec::new(),
             })
             .collect(),
         provenance: serde_json::json!({
@@ -818,7 +842,11 @@ fn search(
                     visible: &t.visible,
                 }),
                 kind: params.loss,
-                seg_weight: params.seg_weight,
+                seg_weight: if params.occlusion {
+                    params.seg_weight
+                } else {
+                    0.0
+                },
             };
             // The empty output: loss 1 on a positive, 0 on a negative.
             let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };

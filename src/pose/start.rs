@@ -1,0 +1,265 @@
+//! Start poses from a detection, for a pose request without an initial
+//! pose: each of the detected component's representative rotations
+//! (learned from the mesh's training renders, see
+//! [`crate::model::ViewMeta::rotations`]) placed so that the mesh's
+//! projected box matches the detection's full-extent box, then ranked by
+//! how well the silhouette at that pose agrees with the detection's
+//! visible mask.
+
+use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+use super::edges::rasterize;
+use super::geometry::{projected_box, Intrinsics, Pose};
+use super::mesh::Mesh;
+use super::PoseError;
+use crate::vision::mask::Mask;
+use crate::vision::Deadline;
+
+/// A rotation from a unit quaternion `[w, x, y, z]` (normalised here).
+pub fn rotation_from_quaternion(q: &[f64; 4]) -> Option<Matrix3<f64>> {
+    let q = Quaternion::new(q[0], q[1], q[2], q[3]);
+    (q.norm() > 1e-9 && q.coords.iter().all(|v| v.is_finite())).then(|| {
+        UnitQuaternion::from_quaternion(q)
+            .to_rotation_matrix()
+            .into_inner()
+    })
+}
+
+/// The pose with `rotation` that projects the mesh's vertices to a box of
+/// the size of `bbox` `(x, y, w, h)` and centred on it: the depth from the
+/// box's area (the projected size goes as one over the depth), the
+/// lateral position from its centre, refined by a few fixed-point steps.
+/// `None` when the mesh does not project.
+pub fn pose_for_box(
+    vertices: &[Vector3<f64>],
+    k: &Intrinsics,
+    rotation: &Matrix3<f64>,
+    bbox: (f64, f64, f64, f64),
+) -> Option<Pose> {
+    let (bx, by, bw, bh) = bbox;
+    if !(bw > 0.0 && bh > 0.0) || vertices.is_empty() {
+        return None;
+    }
+    let (lo, hi) = vertices.iter().fold(
+        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
+        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
+    );
+    let centre = (lo + hi) / 2.0;
+    let diagonal = (hi - lo).norm().max(1e-12);
+    let (u, v) = (bx + bw / 2.0, by + bh / 2.0);
+    // A first depth: the diagonal seen at the box's longer side.
+    let mut z = k.fx.max(k.fy) * diagonal / bw.max(bh);
+    let mut target = Vector3::new((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+    let mut pose = Pose {
+        rotation: *rotation,
+        translation: target * z - rotation * centre,
+    };
+    for _ in 0..4 {
+        let (px, py, pw, ph) = projected_box(vertices, k, &pose)?;
+        if !(pw > 0.0 && ph > 0.0) {
+            return None;
+        }
+        z *= ((pw * ph) / (bw * bh)).sqrt();
+        // Move the projected centre onto the box's centre.
+        let (du, dv) = (u - (px + pw / 2.0), v - (py + ph / 2.0));
+        target.x += du / k.fx;
+        target.y += dv / k.fy;
+        pose.translation = target * z - rotation * centre;
+    }
+    (pose.translation.iter().all(|v| v.is_finite()) && pose.translation.z > 0.0).then_some(pose)
+}
+
+/// The intersection over union of the mesh's silhouette at `pose` with
+/// `mask` (0 when both are empty).
+pub fn silhouette_iou(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    pose: &Pose,
+    mask: &Mask,
+    deadline: &Deadline,
+) -> Result<f64, PoseError> {
+    let raster = rasterize(
+        &mesh.vertices,
+        &mesh.triangles,
+        k,
+        pose,
+        mask.width,
+        mask.height,
+        false,
+        deadline,
+    )?;
+    let (mut inter, mut union) = (0usize, 0usize);
+    for y in 0..mask.height {
+        for x in 0..mask.width {
+            let s = raster.covered(x, y);
+            let m = mask.get(x, y);
+            inter += usize::from(s && m);
+            union += usize::from(s || m);
+        }
+    }
+    Ok(if union == 0 {
+        0.0
+    } else {
+        inter as f64 / union as f64
+    })
+}
+
+/// The centre of the mesh's bounding box.
+fn mesh_centre(mesh: &Mesh) -> Vector3<f64> {
+    let (lo, hi) = mesh.vertices.iter().fold(
+        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
+        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
+    );
+    (lo + hi) / 2.0
+}
+
+/// A start pose and its silhouette agreement with the detection's mask.
+#[derive(Clone, Copy, Debug)]
+pub struct Start {
+    pub pose: Pose,
+    pub silhouette_iou: f64,
+}
+
+/// Depths tried about the one of the box's size, as factors: a
+/// detection's box is a template's, whose aspect is the component's and
+/// whose size is a pyramid level's, so the depth it gives is off by up to
+/// a level or two (about 15% each).
+pub const DEPTH_FACTORS: [f64; 7] = [0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4];
+
+/// The start poses of a detection with full-extent box `bbox` and visible
+/// mask `mask`: every rotation of `rotations` placed on the box by
+/// [`pose_for_box`] at each of the [`DEPTH_FACTORS`] (along the ray
+/// through the box's centre), ranked by [`silhouette_iou`] with the mask
+/// (best first; only the box's own depth, unranked, without a mask), at
+/// most `keep`, no two with the same rotation.
+pub fn start_poses(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    bbox: (f64, f64, f64, f64),
+    mask: Option<&Mask>,
+    rotations: &[[f64; 4]],
+    keep: usize,
+    deadline: &Deadline,
+) -> Result<Vec<Start>, PoseError> {
+    let mut out = Vec::with_capacity(rotations.len());
+    for q in rotations {
+        if deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
+        let Some(r) = rotation_from_quaternion(q) else {
+            continue;
+        };
+        let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) else {
+            continue;
+        };
+        let Some(m) = mask else {
+            out.push(Start {
+                pose,
+                silhouette_iou: 0.0,
+            });
+            continue;
+        };
+        // The object's centre moves along its ray with the depth.
+        let mut best: Option<Start> = None;
+        let centre_cam = pose.translation + r * mesh_centre(mesh);
+        for f in DEPTH_FACTORS {
+            let p = Pose {
+                rotation: r,
+                translation: centre_cam * f - r * mesh_centre(mesh),
+            };
+            let iou = silhouette_iou(mesh, k, &p, m, deadline)?;
+            if best.is_none_or(|b| iou > b.silhouette_iou) {
+                best = Some(Start {
+                    pose: p,
+                    silhouette_iou: iou,
+                });
+            }
+        }
+        out.extend(best);
+    }
+    out.sort_by(|a, b| b.silhouette_iou.total_cmp(&a.silhouette_iou));
+    out.truncate(keep);
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn k() -> Intrinsics {
+        Intrinsics {
+            fx: 570.0,
+            fy: 570.0,
+            cx: 320.0,
+            cy: 240.0,
+        }
+    }
+
+    /// A box placed by `pose_for_box` projects onto the box it was asked
+    /// for, at the depth that gives it that size.
+    #[test]
+    fn pose_for_box_matches_the_box() {
+        let mesh = Mesh::cuboid(60.0, 40.0, 30.0);
+        let truth = Pose {
+            rotation: nalgebra::Rotation3::from_euler_angles(0.4, -0.3, 0.2).into_inner(),
+            translation: Vector3::new(40.0, -25.0, 600.0),
+        };
+        let b = projected_box(&mesh.vertices, &k(), &truth).unwrap();
+        let p = pose_for_box(&mesh.vertices, &k(), &truth.rotation, b).unwrap();
+        let q = projected_box(&mesh.vertices, &k(), &p).unwrap();
+        for (a, c) in [(b.0, q.0), (b.1, q.1), (b.2, q.2), (b.3, q.3)] {
+            assert!((a - c).abs() < 0.5, "{b:?} {q:?}");
+        }
+        assert!((p.translation - truth.translation).norm() < 5.0, "{p:?}");
+        assert!(
+            pose_for_box(&mesh.vertices, &k(), &truth.rotation, (0.0, 0.0, 0.0, 5.0)).is_none()
+        );
+    }
+
+    /// Among rotations placed on the box, the true one agrees best with
+    /// the true silhouette and ranks first.
+    #[test]
+    fn the_true_rotation_ranks_first_by_silhouette() {
+        let mesh = Mesh::cuboid(80.0, 30.0, 20.0);
+        let rot = |a: f64, b: f64, c: f64| {
+            let r = nalgebra::Rotation3::from_euler_angles(a, b, c);
+            let q = UnitQuaternion::from_rotation_matrix(&r);
+            [q.w, q.i, q.j, q.k]
+        };
+        let truth_q = rot(0.3, 0.2, 0.9);
+        let truth = Pose {
+            rotation: rotation_from_quaternion(&truth_q).unwrap(),
+            translation: Vector3::new(0.0, 0.0, 500.0),
+        };
+        let raster = rasterize(
+            &mesh.vertices,
+            &mesh.triangles,
+            &k(),
+            &truth,
+            640,
+            480,
+            false,
+            &Deadline::NONE,
+        )
+        .unwrap();
+        let mut mask = Mask::new(640, 480);
+        for y in 0..480 {
+            for x in 0..640 {
+                mask.set(x, y, raster.covered(x, y));
+            }
+        }
+        let b = projected_box(&mesh.vertices, &k(), &truth).unwrap();
+        let rotations = [
+            rot(0.3, 0.2, 0.0),
+            truth_q,
+            rot(1.2, 0.2, 0.9),
+            rot(0.3, 1.0, -0.5),
+        ];
+        let starts =
+            start_poses(&mesh, &k(), b, Some(&mask), &rotations, 2, &Deadline::NONE).unwrap();
+        assert_eq!(starts.len(), 2);
+        assert!(starts[0].silhouette_iou > 0.95, "{:?}", starts[0]);
+        assert!((starts[0].pose.rotation - truth.rotation).norm() < 1e-9);
+        assert!(starts[1].silhouette_iou < starts[0].silhouette_iou);
+    }
+}
