@@ -6,6 +6,7 @@
 
 mod annotate;
 mod args;
+mod bop_eval;
 mod cv;
 mod demo;
 mod detect;
@@ -43,6 +44,7 @@ use crate::vision::refine::PixelRefine;
 
 use annotate::*;
 use args::*;
+use bop_eval::*;
 use cv::*;
 use demo::*;
 use detect::*;
@@ -92,6 +94,11 @@ pub(crate) enum Command {
     /// occluders, camera noise), one SD-HOP model with a component per
     /// group of viewpoints.
     Mesh(MeshArgs),
+    /// The whole pipeline on real photographs in BOP format (LM-O):
+    /// detection and visible masks as lmo_detect_eval.py scores them,
+    /// ablations beside, and the pose from no start (ADD(-S) < 10% d);
+    /// JSON report and plot.
+    BopEval(BopEvalArgs),
     /// The occlusion pose benchmark: IRLS, OR-IRLS with the exact mask and
     /// OR-IRLS with the SD-HOP mask on held-out backgrounds; six mean
     /// errors and success rates.
@@ -189,6 +196,7 @@ pub fn main() -> ExitCode {
         Command::Pose(a) => run_pose(a),
         Command::PoseData(a) => run_pose_data(a),
         Command::Mesh(a) => run_mesh(a),
+        Command::BopEval(a) => run_bop_eval(a),
         Command::PoseBench(a) => run_pose_bench(a),
         Command::PoseEval(a) => run_pose_eval(a),
         Command::Demo(a) => run_demo(a),

@@ -38,7 +38,30 @@ pub struct Instance {
     /// The visible fraction of `mask_visib` where it was rendered from
     /// the annotated poses only; `None` when not given.
     pub oracle_visib_fract: Option<f64>,
+    /// The box `(x, y, w, h)` of the object's full extent (hidden parts
+    /// included), `bbox_obj` of `scene_gt_info.json`; `None` when not given.
+    pub bbox_obj: Option<[f64; 4]>,
 }
+
+/// BOP's names of the Linemod(-Occluded) objects by id, the labels their
+/// detectors carry.
+pub const LINEMOD_NAMES: [(u32, &str); 15] = [
+    (1, "ape"),
+    (2, "benchvise"),
+    (3, "bowl"),
+    (4, "camera"),
+    (5, "can"),
+    (6, "cat"),
+    (7, "cup"),
+    (8, "driller"),
+    (9, "duck"),
+    (10, "eggbox"),
+    (11, "glue"),
+    (12, "holepuncher"),
+    (13, "iron"),
+    (14, "lamp"),
+    (15, "phone"),
+];
 
 /// One image: its intrinsics (`cam_K`, row-major) and instances.
 #[derive(Clone, Debug, PartialEq)]
@@ -70,6 +93,8 @@ struct InfoEntry {
     visib_fract: f64,
     #[serde(default)]
     oracle_visib_fract: Option<f64>,
+    #[serde(default)]
+    bbox_obj: Option<[f64; 4]>,
 }
 
 #[derive(Deserialize)]
@@ -166,6 +191,7 @@ impl Bop {
                         translation,
                         visib_fract: i.visib_fract,
                         oracle_visib_fract: i.oracle_visib_fract,
+                        bbox_obj: i.bbox_obj,
                     });
                 }
                 images.push(BopImage {

@@ -177,3 +177,113 @@ pub fn recall_fppi_png(
     img.save(out)
         .map_err(|e| PlotError::Io(out.display().to_string(), e.to_string()))
 }
+
+/// The recall-FPPI curve points of each object of one variant.
+pub type VariantCurves = (String, Vec<(String, Vec<(f64, f64)>)>);
+
+/// Recall against FPPI (0 to 1) of several variants (ablations) of the
+/// same objects: one panel per object, one line per variant, the AUCs in
+/// the legend. `variants[v] = (name, [(object, curve points)])`.
+pub fn variants_png(
+    variants: &[VariantCurves],
+    out: &Path,
+) -> Result<(), PlotError> {
+    let text = font_available();
+    let objects: Vec<&String> = variants
+        .first()
+        .map(|(_, o)| o.iter().map(|(n, _)| n).collect())
+        .unwrap_or_default();
+    let cols = objects.len().clamp(1, 4);
+    let rows = objects.len().div_ceil(cols).max(1);
+    let (pw, ph) = (360u32, 300u32);
+    let (w, h) = (pw * cols as u32, ph * rows as u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    let colours = [
+        RGBColor(20, 70, 200),
+        RGBColor(200, 30, 30),
+        RGBColor(40, 150, 60),
+        RGBColor(230, 140, 40),
+        RGBColor(120, 120, 120),
+    ];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(draw_err)?;
+        let panels = root.split_evenly((rows, cols));
+        for (panel, object) in panels.iter().zip(&objects) {
+            let mut builder = ChartBuilder::on(panel);
+            builder.margin(8);
+            if text {
+                builder
+                    .caption(object.as_str(), ("sans-serif", 15))
+                    .x_label_area_size(28)
+                    .y_label_area_size(34);
+            }
+            let mut chart = builder
+                .build_cartesian_2d(0.0..1.0f64, 0.0..1.0f64)
+                .map_err(draw_err)?;
+            if text {
+                chart
+                    .configure_mesh()
+                    .x_desc("false positives per image")
+                    .y_desc("recall")
+                    .label_style(("sans-serif", 11))
+                    .draw()
+                    .map_err(draw_err)?;
+            } else {
+                chart
+                    .configure_mesh()
+                    .disable_x_mesh()
+                    .disable_y_mesh()
+                    .draw()
+                    .map_err(draw_err)?;
+            }
+            for (v, (name, curves)) in variants.iter().enumerate() {
+                let Some((_, pts)) = curves.iter().find(|(n, _)| n == *object) else {
+                    continue;
+                };
+                // The step function, cut at FPPI 1.
+                let mut steps: Vec<(f64, f64)> = Vec::with_capacity(pts.len() * 2);
+                let mut last_r = 0.0;
+                for &(f, r) in pts {
+                    if f > 1.0 {
+                        steps.push((1.0, last_r));
+                        break;
+                    }
+                    steps.push((f, last_r));
+                    steps.push((f, r));
+                    last_r = r;
+                }
+                if steps.last().is_some_and(|p| p.0 < 1.0) {
+                    steps.push((1.0, last_r));
+                }
+                let colour = colours[v % colours.len()];
+                let area: f64 = steps.windows(2).map(|w| (w[1].0 - w[0].0) * w[0].1).sum();
+                let series = chart
+                    .draw_series(LineSeries::new(steps, colour.stroke_width(2)))
+                    .map_err(draw_err)?;
+                if text {
+                    series
+                        .label(format!("{name} AUC {area:.3}"))
+                        .legend(move |(x, y)| {
+                            PathElement::new([(x, y), (x + 14, y)], colour.stroke_width(3))
+                        });
+                }
+            }
+            if text {
+                chart
+                    .configure_series_labels()
+                    .position(SeriesLabelPosition::UpperLeft)
+                    .label_font(("sans-serif", 11))
+                    .background_style(WHITE.mix(0.8))
+                    .border_style(BLACK)
+                    .draw()
+                    .map_err(draw_err)?;
+            }
+        }
+        root.present().map_err(draw_err)?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| PlotError::Draw("buffer size".into()))?;
+    img.save(out)
+        .map_err(|e| PlotError::Io(out.display().to_string(), e.to_string()))
+}

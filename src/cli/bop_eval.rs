@@ -1,0 +1,420 @@
+//! `sdhop-train bop-eval`: the whole pipeline on real photographs in BOP
+//! format (LM-O). Detection and visible masks exactly as
+//! `lmo_detect_eval.py` scores them, and the pose from no start (detect,
+//! then OR-IRLS from the detection's start poses, as `POST /pose` without
+//! `initial_pose`): the share of instances with ADD(-S) below 10% of the
+//! diameter and the BOP-style success. Other model folders (ablations
+//! trained on the same renders: `--no-occlusion`, `--no-hop`) are scored
+//! on the same photographs beside it. Prints tables, writes a JSON report
+//! and a plot.
+
+use std::time::Instant;
+
+use nalgebra::Vector3;
+
+use super::*;
+use crate::data::bop::{Bop, BopImage, LINEMOD_NAMES};
+use crate::eval::bop_detect::{add_s, score_object, scored_instance, DetectScore};
+use crate::eval::bop_pose::{add, errors};
+use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
+use crate::pose::api::{estimate, PoseParams};
+use crate::pose::geometry::{Intrinsics, Pose};
+use crate::pose::Mesh;
+
+#[derive(clap::Args)]
+pub(crate) struct BopEvalArgs {
+    /// BOP dataset root (models/ and test/SCENE/), e.g. ../shared/data/lmo_dev.
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// Folder of the detectors to evaluate; their labels are BOP object
+    /// names (ape, can, cat, ...).
+    #[arg(long)]
+    pub(crate) models_dir: PathBuf,
+    /// Further folders scored the same way, as NAME=DIR (e.g.
+    /// plain-hog=out/plain): ablations trained on the same renders.
+    #[arg(long = "compare", value_parser = parse_named_dir)]
+    pub(crate) compare: Vec<(String, PathBuf)>,
+    /// Detection threshold (scores of the acceptance query).
+    #[arg(long, default_value_t = -1.5, allow_negative_numbers = true)]
+    pub(crate) threshold: f64,
+    #[arg(long, default_value_t = 20)]
+    pub(crate) max_detections: usize,
+    /// Largest |oracle_visib_fract - visib_fract| of the segmentation and
+    /// pose instances.
+    #[arg(long, default_value_t = 0.10)]
+    pub(crate) max_oracle_gap: f64,
+    /// Also the pose from no start of every instance scored for
+    /// segmentation (visib_fract >= 0.4), with the evaluated models only.
+    #[arg(long)]
+    pub(crate) pose: bool,
+    /// Only every n-th photograph (a quick check).
+    #[arg(long, default_value_t = 1)]
+    pub(crate) every: usize,
+    /// JSON report (default out/bop-eval/report.json) and plot beside it.
+    #[arg(long, default_value = "out/bop-eval")]
+    pub(crate) out: PathBuf,
+}
+
+fn parse_named_dir(text: &str) -> Result<(String, PathBuf), String> {
+    match text.split_once('=') {
+        Some((n, d)) if !n.trim().is_empty() && !d.trim().is_empty() => {
+            Ok((n.trim().to_string(), PathBuf::from(d.trim())))
+        }
+        _ => Err(format!("expected NAME=DIR, got {text:?}")),
+    }
+}
+
+/// Pose from no start of one instance.
+#[derive(Clone, Debug, serde::Serialize)]
+struct PoseOutcome {
+    object: String,
+    image: u32,
+    k: usize,
+    visib_fract: f64,
+    /// `None`: no pose (the request was refused, e.g. nothing detected).
+    add: Option<f64>,
+    add_ok: bool,
+    success: bool,
+    t_error: Option<f64>,
+    angle: Option<f64>,
+    seconds: f64,
+    error: Option<String>,
+}
+
+/// One variant's figures.
+#[derive(Clone, Debug, serde::Serialize)]
+struct Variant {
+    name: String,
+    models_dir: String,
+    objects: Vec<DetectScore>,
+    mean_auc: f64,
+    mean_seg_error: f64,
+    mean_recall_at_1fppi: f64,
+    detect_ms_per_image: f64,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pose: Vec<PoseOutcome>,
+}
+
+fn name_of(obj: u32) -> Option<&'static str> {
+    LINEMOD_NAMES
+        .iter()
+        .find(|(id, _)| *id == obj)
+        .map(|(_, n)| *n)
+}
+
+fn id_of(label: &str) -> Option<u32> {
+    LINEMOD_NAMES
+        .iter()
+        .find(|(_, n)| *n == label)
+        .map(|(id, _)| *id)
+}
+
+fn visible_mask(bop: &Bop, image: &BopImage, k: usize) -> Option<Mask> {
+    let img = image::open(bop.mask_visib_path(image, k)).ok()?.to_luma8();
+    let (w, h) = img.dimensions();
+    let mut m = Mask::new(w as usize, h as usize);
+    for (x, y, p) in img.enumerate_pixels() {
+        m.set(x as usize, y as usize, p.0[0] != 0);
+    }
+    Some(m)
+}
+
+fn intrinsics(image: &BopImage) -> Intrinsics {
+    let k = image.cam_k;
+    Intrinsics {
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    }
+}
+
+fn pose_of(rows: &[[f64; 3]; 3], t: &[f64; 3]) -> Option<Pose> {
+    Pose::from_client(*rows, *t).ok()
+}
+
+/// Scores one folder of models.
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    name: &str,
+    dir: &Path,
+    bop: &Bop,
+    images: &[usize],
+    args: &BopEvalArgs,
+    pose: bool,
+    meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
+) -> Result<Variant, Failure> {
+    let models = load_model_dir(dir)?;
+    let refs: Vec<&Model> = models.iter().collect();
+    let labels: Vec<(String, u32)> = models
+        .iter()
+        .flat_map(|m| m.meta.viewpoints.iter().map(|v| v.label.clone()))
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .filter_map(|l| id_of(&l).map(|id| (l, id)))
+        .filter(|(_, id)| {
+            bop.images
+                .iter()
+                .any(|im| im.instances.iter().any(|g| g.obj_id == *id))
+        })
+        .collect();
+    if labels.is_empty() {
+        return Err(Failure::input(format!(
+            "{}: no model carries the BOP name of an annotated object (ape, can, cat, ...)",
+            dir.display()
+        )));
+    }
+    let opts = DetectOptions {
+        threshold: Some(args.threshold),
+        max_detections: Some(args.max_detections),
+        masks: MaskMode::Refined,
+        ..DetectOptions::default()
+    };
+    let pb = progress_bar(images.len() as u64, &format!("{name}: detecting"));
+    let mut detections: Vec<Vec<DetectionJson>> = vec![Vec::new(); bop.images.len()];
+    let t = Instant::now();
+    for &i in images {
+        let img = read_image(&bop.rgb_path(&bop.images[i]), usize::MAX)?;
+        detections[i] = detect_image(&img, &refs, &opts)
+            .map_err(Failure::input)?
+            .detections;
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let detect_ms = t.elapsed().as_secs_f64() * 1e3 / images.len().max(1) as f64;
+    let objects: Vec<DetectScore> = labels
+        .iter()
+        .map(|(label, id)| {
+            score_object(
+                bop,
+                images,
+                &detections,
+                *id,
+                label,
+                args.max_oracle_gap,
+                |im, k| visible_mask(bop, im, k),
+            )
+        })
+        .collect();
+    let mean = |f: &dyn Fn(&DetectScore) -> f64| {
+        objects.iter().map(f).sum::<f64>() / objects.len().max(1) as f64
+    };
+    let mut poses = Vec::new();
+    if pose {
+        let cases: Vec<(usize, usize, &str, u32)> = images
+            .iter()
+            .flat_map(|&i| {
+                let labels = &labels;
+                bop.images[i].instances.iter().filter_map(move |g| {
+                    let (label, _) = labels.iter().find(|(_, id)| *id == g.obj_id)?;
+                    scored_instance(g, args.max_oracle_gap).then_some((
+                        i,
+                        g.k,
+                        label.as_str(),
+                        g.obj_id,
+                    ))
+                })
+            })
+            .collect();
+        let pb = progress_bar(cases.len() as u64, &format!("{name}: pose from no start"));
+        for (i, k, label, obj) in cases {
+            let image = &bop.images[i];
+            let g = &image.instances[k];
+            let r = g.rotation;
+            let truth = pose_of(
+                &[[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
+                &g.translation,
+            )
+            .ok_or_else(|| Failure::input(format!("image {}: bad pose", image.id)))?;
+            let (mesh, points) = &meshes[&obj];
+            let info = &bop.models[&obj];
+            let img = read_image(&bop.rgb_path(image), usize::MAX)?;
+            let params = PoseParams {
+                intrinsics: intrinsics(image),
+                initial_pose: None,
+                model: Some(label.to_string()),
+                mask: None,
+                max_iterations: None,
+                start_uncertainty: None,
+            };
+            let t = Instant::now();
+            let answer = estimate(&img, mesh, &params, None, &refs);
+            let seconds = t.elapsed().as_secs_f64();
+            let mut out = PoseOutcome {
+                object: label.to_string(),
+                image: image.id,
+                k,
+                visib_fract: g.visib_fract,
+                add: None,
+                add_ok: false,
+                success: false,
+                t_error: None,
+                angle: None,
+                seconds,
+                error: None,
+            };
+            match answer {
+                Ok(a) => {
+                    if let Some(est) = pose_of(&a.pose.rotation, &a.pose.translation) {
+                        let symmetric = !info.symmetries_discrete.is_empty();
+                        let e = if symmetric {
+                            add_s(&est, &truth, points)
+                        } else {
+                            add(&est, &truth, &[], points)
+                        };
+                        let (_, te, angle) = errors(&est, &truth, &info.symmetries_discrete);
+                        out.add = Some(e);
+                        out.add_ok = e < 0.1 * info.diameter;
+                        out.success = te < 0.1 * info.diameter && angle < 5.0;
+                        out.t_error = Some(te);
+                        out.angle = Some(angle);
+                    }
+                }
+                Err(e) => out.error = Some(e.to_string()),
+            }
+            poses.push(out);
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
+    }
+    Ok(Variant {
+        name: name.to_string(),
+        models_dir: dir.display().to_string(),
+        mean_auc: mean(&|s| s.auc),
+        mean_seg_error: mean(&|s| s.seg_error),
+        mean_recall_at_1fppi: mean(&|s| s.recall_at_1fppi),
+        detect_ms_per_image: detect_ms,
+        objects,
+        pose: poses,
+    })
+}
+
+fn print_variant(v: &Variant) {
+    println!(
+        "{} ({}), detection {:.0} ms per image",
+        v.name, v.models_dir, v.detect_ms_per_image
+    );
+    println!(
+        "{:<12} {:>6} {:>8} {:>5} {:>7} {:>5}",
+        "object", "AUC", "R@1FPPI", "pos", "segerr", "nseg"
+    );
+    for s in &v.objects {
+        println!(
+            "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4} {:>5}",
+            s.object, s.auc, s.recall_at_1fppi, s.positives, s.seg_error, s.seg_instances
+        );
+    }
+    println!(
+        "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4}",
+        "mean", v.mean_auc, v.mean_recall_at_1fppi, "", v.mean_seg_error
+    );
+    if !v.pose.is_empty() {
+        println!(
+            "pose from no start: {:<10} {:>4} {:>9} {:>9} {:>8} {:>8}",
+            "object", "n", "ADD<10%d", "BOP succ", "refused", "s median"
+        );
+        let mut names: Vec<&str> = v.pose.iter().map(|p| p.object.as_str()).collect();
+        names.dedup();
+        for name in names.iter().copied().chain(std::iter::once("all")) {
+            let rs: Vec<&PoseOutcome> = v
+                .pose
+                .iter()
+                .filter(|p| name == "all" || p.object == name)
+                .collect();
+            let n = rs.len().max(1) as f64;
+            let mut secs: Vec<f64> = rs.iter().map(|p| p.seconds).collect();
+            secs.sort_by(f64::total_cmp);
+            println!(
+                "                    {:<10} {:>4} {:>9.3} {:>9.3} {:>8} {:>8.2}",
+                name,
+                rs.len(),
+                rs.iter().filter(|p| p.add_ok).count() as f64 / n,
+                rs.iter().filter(|p| p.success).count() as f64 / n,
+                rs.iter().filter(|p| p.error.is_some()).count(),
+                secs.get(secs.len() / 2).copied().unwrap_or(0.0)
+            );
+        }
+    }
+}
+
+pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
+    if args.every == 0 {
+        return Err(Failure::input("--every must be at least 1"));
+    }
+    let bop = Bop::load(&args.data).map_err(Failure::input)?;
+    if bop
+        .images
+        .iter()
+        .all(|im| im.instances.iter().all(|g| g.bbox_obj.is_none()))
+    {
+        return Err(Failure::input(format!(
+            "{}: scene_gt_info.json carries no bbox_obj: nothing to score against",
+            args.data.display()
+        )));
+    }
+    let images: Vec<usize> = (0..bop.images.len()).step_by(args.every).collect();
+    let mut meshes = std::collections::BTreeMap::new();
+    if args.pose {
+        for &obj in bop.models.keys() {
+            if name_of(obj).is_none() {
+                continue;
+            }
+            let path = bop.model_path(obj);
+            let Ok(bytes) = std::fs::read(&path) else {
+                continue;
+            };
+            let mesh = Mesh::parse(&bytes)
+                .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
+            // At most 1000 points for ADD(-S), evenly through the list.
+            let step = (mesh.vertices.len() / 1000).max(1);
+            let points: Vec<Vector3<f64>> = mesh.vertices.iter().step_by(step).copied().collect();
+            meshes.insert(obj, (mesh, points));
+        }
+    }
+    let mut variants = vec![evaluate(
+        "sdhop",
+        &args.models_dir,
+        &bop,
+        &images,
+        args,
+        args.pose,
+        &meshes,
+    )?];
+    print_variant(&variants[0]);
+    for (name, dir) in &args.compare {
+        let v = evaluate(name, dir, &bop, &images, args, false, &meshes)?;
+        print_variant(&v);
+        variants.push(v);
+    }
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
+    let report = args.out.join("report.json");
+    let json = serde_json::json!({
+        "data": args.data.display().to_string(),
+        "images": images.len(),
+        "threshold": args.threshold,
+        "max_detections": args.max_detections,
+        "variants": variants,
+    });
+    std::fs::write(
+        &report,
+        serde_json::to_string_pretty(&json).map_err(Failure::io)?,
+    )
+    .map_err(|e| Failure::io(format!("{}: {e}", report.display())))?;
+    let plot = args.out.join("recall_fppi.png");
+    let curves: Vec<crate::eval::plot::VariantCurves> = variants
+        .iter()
+        .map(|v| {
+            (
+                v.name.clone(),
+                v.objects
+                    .iter()
+                    .map(|s| (s.object.clone(), s.curve.clone()))
+                    .collect(),
+            )
+        })
+        .collect();
+    crate::eval::plot::variants_png(&curves, &plot).map_err(Failure::io)?;
+    println!("report {}, plot {}", report.display(), plot.display());
+    Ok(())
+}
