@@ -89,6 +89,7 @@ struct Variant {
     objects: Vec<DetectScore>,
     mean_auc: f64,
     mean_seg_error: f64,
+    mean_seg_error_raw: f64,
     mean_recall_at_1fppi: f64,
     detect_ms_per_image: f64,
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -167,7 +168,7 @@ fn evaluate(
     let opts = DetectOptions {
         threshold: Some(args.threshold),
         max_detections: Some(args.max_detections),
-        masks: MaskMode::Refined,
+        masks: MaskMode::Both,
         ..DetectOptions::default()
     };
     let pb = progress_bar(images.len() as u64, &format!("{name}: detecting"));
@@ -282,6 +283,7 @@ fn evaluate(
         models_dir: dir.display().to_string(),
         mean_auc: mean(&|s| s.auc),
         mean_seg_error: mean(&|s| s.seg_error),
+        mean_seg_error_raw: mean(&|s| s.seg_error_raw),
         mean_recall_at_1fppi: mean(&|s| s.recall_at_1fppi),
         detect_ms_per_image: detect_ms,
         objects,
@@ -295,18 +297,24 @@ fn print_variant(v: &Variant) {
         v.name, v.models_dir, v.detect_ms_per_image
     );
     println!(
-        "{:<12} {:>6} {:>8} {:>5} {:>7} {:>5}",
-        "object", "AUC", "R@1FPPI", "pos", "segerr", "nseg"
+        "{:<12} {:>6} {:>8} {:>5} {:>7} {:>7} {:>5}",
+        "object", "AUC", "R@1FPPI", "pos", "segerr", "raw", "nseg"
     );
     for s in &v.objects {
         println!(
-            "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4} {:>5}",
-            s.object, s.auc, s.recall_at_1fppi, s.positives, s.seg_error, s.seg_instances
+            "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4} {:>7.4} {:>5}",
+            s.object,
+            s.auc,
+            s.recall_at_1fppi,
+            s.positives,
+            s.seg_error,
+            s.seg_error_raw,
+            s.seg_instances
         );
     }
     println!(
-        "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4}",
-        "mean", v.mean_auc, v.mean_recall_at_1fppi, "", v.mean_seg_error
+        "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4} {:>7.4}",
+        "mean", v.mean_auc, v.mean_recall_at_1fppi, "", v.mean_seg_error, v.mean_seg_error_raw
     );
     if !v.pose.is_empty() {
         println!(

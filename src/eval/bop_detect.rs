@@ -39,8 +39,12 @@ pub struct DetectScore {
     pub recall_at_1fppi: f64,
     /// Instances with `visib_fract >= 0.1`.
     pub positives: usize,
-    /// Mean segmentation error over the scored instances.
+    /// Mean segmentation error over the scored instances (the refined
+    /// pixel masks, `mask`).
     pub seg_error: f64,
+    /// The same with the raw cell masks (`raw_mask`), where the
+    /// detections carry them (else NaN).
+    pub seg_error_raw: f64,
     pub seg_instances: usize,
     /// Recall against FPPI: the points `(fppi, recall)` of the curve.
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
@@ -123,7 +127,8 @@ pub fn score_object<F>(
 where
     F: FnMut(&BopImage, usize) -> Option<Mask>,
 {
-    let (mut scored, mut positives, mut seg) = (Vec::new(), 0usize, Vec::new());
+    let (mut scored, mut positives, mut seg, mut seg_raw) =
+        (Vec::new(), 0usize, Vec::new(), Vec::new());
     for &i in images {
         let image = &bop.images[i];
         let insts: Vec<&Instance> = image
@@ -167,42 +172,62 @@ where
             let hit = dets
                 .iter()
                 .find(|d| box_iou(box_of(d), b) >= 0.5 && d.mask.is_some());
-            let err = match (
-                hit.and_then(|d| d.mask.as_ref().and_then(Mask::from_rle)),
-                visible(image, g.k),
-            ) {
-                (Some(m), Some(v)) if (m.width, m.height) == (v.width, v.height) => {
-                    let (mut inter, mut union) = (0usize, 0usize);
-                    for (a, t) in m.data.iter().zip(&v.data) {
-                        let (a, t) = (*a != 0, *t != 0);
-                        inter += usize::from(a && t);
-                        union += usize::from(a || t);
-                    }
-                    1.0 - if union > 0 {
-                        inter as f64 / union as f64
-                    } else {
-                        0.0
-                    }
-                }
-                _ => 1.0,
-            };
-            seg.push(err);
+            let truth = visible(image, g.k);
+            seg.push(mask_error(
+                hit.and_then(|d| d.mask.as_ref()),
+                truth.as_ref(),
+            ));
+            if hit.is_none_or(|d| d.raw_mask.is_some()) {
+                seg_raw.push(mask_error(
+                    hit.and_then(|d| d.raw_mask.as_ref()),
+                    truth.as_ref(),
+                ));
+            }
         }
     }
     let (auc, recall_at_1fppi, curve) = auc_curve(scored, positives, images.len());
+    let mean = |v: &[f64]| {
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            v.iter().sum::<f64>() / v.len() as f64
+        }
+    };
     DetectScore {
         object: label.to_string(),
         obj_id,
         auc,
         recall_at_1fppi,
         positives,
-        seg_error: if seg.is_empty() {
-            f64::NAN
+        seg_error: mean(&seg),
+        seg_error_raw: if seg_raw.len() == seg.len() {
+            mean(&seg_raw)
         } else {
-            seg.iter().sum::<f64>() / seg.len() as f64
+            f64::NAN
         },
         seg_instances: seg.len(),
         curve,
+    }
+}
+
+/// `1 - IoU` of a detection's mask with the visible truth; 1 without a
+/// mask, a truth or when their sizes differ.
+fn mask_error(rle: Option<&crate::vision::mask::Rle>, truth: Option<&Mask>) -> f64 {
+    match (rle.and_then(Mask::from_rle), truth) {
+        (Some(m), Some(v)) if (m.width, m.height) == (v.width, v.height) => {
+            let (mut inter, mut union) = (0usize, 0usize);
+            for (a, t) in m.data.iter().zip(&v.data) {
+                let (a, t) = (*a != 0, *t != 0);
+                inter += usize::from(a && t);
+                union += usize::from(a || t);
+            }
+            1.0 - if union > 0 {
+                inter as f64 / union as f64
+            } else {
+                0.0
+            }
+        }
+        _ => 1.0,
     }
 }
 
@@ -251,6 +276,94 @@ mod tests {
         // Never reaching 1 FPPI: the last recall holds to the end.
         let (auc, r1, _) = auc_curve(vec![(1.0, true)], 2, 10);
         assert!((auc - 0.5).abs() < 1e-12 && (r1 - 0.5).abs() < 1e-12);
+    }
+
+    fn det(label: &str, score: f64, b: (f64, f64, f64, f64), mask: Option<&Mask>) -> DetectionJson {
+        let mut d: DetectionJson = serde_json::from_value(serde_json::json!({
+            "label": label, "model": label, "score": score,
+            "box": {"x": b.0, "y": b.1, "width": b.2, "height": b.3},
+            "viewpoint": 0, "level": 0, "visible_fraction": 1.0, "truncated": false
+        }))
+        .unwrap();
+        d.mask = mask.map(|m| m.to_rle());
+        d
+    }
+
+    fn inst(k: usize, obj_id: u32, visib: f64, b: [f64; 4]) -> Instance {
+        Instance {
+            k,
+            obj_id,
+            rotation: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            translation: [0.0, 0.0, 500.0],
+            visib_fract: visib,
+            oracle_visib_fract: None,
+            bbox_obj: Some(b),
+        }
+    }
+
+    /// Matching as the scorer does: greedy by score within a photograph,
+    /// a detection on an ignored instance (visib < 0.1) counts neither way,
+    /// duplicates and other labels' detections are false positives or
+    /// left out; the segmentation takes the top detection on the box.
+    #[test]
+    fn score_object_matches_the_scorer_rules() {
+        let (w, h) = (40usize, 30usize);
+        let mut truth = Mask::new(w, h);
+        for y in 10..20 {
+            for x in 10..20 {
+                truth.set(x, y, true);
+            }
+        }
+        let mut half = Mask::new(w, h);
+        for y in 10..20 {
+            for x in 10..15 {
+                half.set(x, y, true);
+            }
+        }
+        let bop = Bop {
+            root: std::path::PathBuf::new(),
+            models: Default::default(),
+            images: vec![
+                BopImage {
+                    scene: "000002".into(),
+                    id: 1,
+                    cam_k: [0.0; 9],
+                    instances: vec![
+                        inst(0, 1, 0.9, [10.0, 10.0, 10.0, 10.0]),
+                        inst(1, 6, 0.9, [0.0, 0.0, 5.0, 5.0]),
+                    ],
+                },
+                BopImage {
+                    scene: "000002".into(),
+                    id: 2,
+                    cam_k: [0.0; 9],
+                    instances: vec![inst(0, 1, 0.05, [10.0, 10.0, 10.0, 10.0])],
+                },
+            ],
+        };
+        let dets = vec![
+            vec![
+                // The best on the instance (half its mask), a duplicate,
+                // a false positive elsewhere, another object's.
+                det("ape", 2.0, (10.0, 10.0, 10.0, 10.0), Some(&half)),
+                det("ape", 1.5, (10.5, 10.0, 10.0, 10.0), Some(&truth)),
+                det("ape", 1.0, (25.0, 0.0, 10.0, 10.0), None),
+                det("cat", 3.0, (10.0, 10.0, 10.0, 10.0), None),
+            ],
+            // On an ignored instance: neither way.
+            vec![det("ape", 5.0, (10.0, 10.0, 10.0, 10.0), None)],
+        ];
+        let s = score_object(&bop, &[0, 1], &dets, 1, "ape", 0.1, |_, _| {
+            Some(truth.clone())
+        });
+        assert_eq!(s.positives, 1);
+        // Points: (0,0) (0,1) (.5,1) (1,1): recall 1 from FPPI 0.
+        assert!((s.auc - 1.0).abs() < 1e-12, "{s:?}");
+        assert!((s.recall_at_1fppi - 1.0).abs() < 1e-12);
+        assert_eq!(s.seg_instances, 1);
+        assert!((s.seg_error - 0.5).abs() < 1e-12, "{}", s.seg_error);
+        // Without raw masks on the hit, no raw figure.
+        assert!(s.seg_error_raw.is_nan());
     }
 
     /// ADD-S of a pose turned about a symmetry axis of the point set is 0.

@@ -184,10 +184,7 @@ pub type VariantCurves = (String, Vec<(String, Vec<(f64, f64)>)>);
 /// Recall against FPPI (0 to 1) of several variants (ablations) of the
 /// same objects: one panel per object, one line per variant, the AUCs in
 /// the legend. `variants[v] = (name, [(object, curve points)])`.
-pub fn variants_png(
-    variants: &[VariantCurves],
-    out: &Path,
-) -> Result<(), PlotError> {
+pub fn variants_png(variants: &[VariantCurves], out: &Path) -> Result<(), PlotError> {
     let text = font_available();
     let objects: Vec<&String> = variants
         .first()
