@@ -7,7 +7,9 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::model::Model;
-use crate::vision::detect::{detection_masks, DenseBounds, DetectStats, Detector, Region};
+use crate::vision::detect::{
+    detection_masks, DenseBounds, DetectStats, Detector, Location, Region, Transfer,
+};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{CompressedRle, Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
@@ -42,6 +44,11 @@ pub struct DetectOptions {
     pub region: Option<Region>,
     /// Give up once this passes.
     pub deadline: Deadline,
+    /// Response transfer between the models (paper, Algorithm 1): they
+    /// run in the given order, and each model's best detection at or above
+    /// its own threshold claims the cells of its visible mask for the
+    /// models after it (see [`crate::vision::detect::Transfer`]).
+    pub transfer: bool,
 }
 
 impl Default for DetectOptions {
@@ -54,6 +61,7 @@ impl Default for DetectOptions {
             max_pixels: DEFAULT_MAX_PIXELS,
             region: None,
             deadline: Deadline::NONE,
+            transfer: false,
         }
     }
 }
@@ -223,6 +231,12 @@ pub fn detect_prebuilt_with(
     let mut detections: Vec<DetectionJson> = Vec::new();
     let mut used = vec![false; pyramids.len()];
     let mut built_ms = 0.0;
+    // One claim map per pyramid (models of other feature settings never
+    // share cells).
+    let mut transfers: Vec<Option<Transfer>> = pyramids
+        .iter()
+        .map(|p| (opts.transfer && models.len() > 1).then(|| Transfer::new(p)))
+        .collect();
     for (mi, model) in models.iter().enumerate() {
         let m = &model.meta;
         let idx = pyramids
@@ -253,6 +267,7 @@ pub fn detect_prebuilt_with(
             model,
             pre,
             opts,
+            transfers[idx].as_mut(),
             &mut timing,
             &mut stats,
             &mut detections,
@@ -263,12 +278,17 @@ pub fn detect_prebuilt_with(
     Ok(resp)
 }
 
-/// One model's scan and masks, appended to `detections`.
+/// One model's scan and masks, appended to `detections`; with a
+/// `transfer`, the scan sees the cells earlier models claimed, and this
+/// model's best detection at or above its own threshold claims its visible
+/// cells, with its mean object response per visible cell.
+#[allow(clippy::too_many_arguments)]
 fn run_model(
     pyr: &FeaturePyramid,
     model: &Model,
     pre: Option<&DenseBounds>,
     opts: &DetectOptions,
+    transfer: Option<&mut Transfer>,
     timing: &mut Timing,
     stats: &mut DetectStats,
     detections: &mut Vec<DetectionJson>,
@@ -284,8 +304,35 @@ fn run_model(
     params.prune = opts.prune;
     params.region = opts.region;
     params.deadline = opts.deadline;
-    let detector = Detector::new(&model.views)?;
-    let (dets, s) = detector.detect_with_bounds(pyr, &params, pre)?;
+    let (dets, s) = match transfer.as_deref() {
+        Some(t) => Detector::new(&model.views)?
+            .with_transfer(t)
+            .detect_with_bounds(pyr, &params, pre)?,
+        None => Detector::new(&model.views)?.detect_with_bounds(pyr, &params, pre)?,
+    };
+    if let Some(t) = transfer {
+        if let Some(d) = dets.first().filter(|d| d.score >= m.detection.threshold) {
+            let detector = Detector::new(&model.views)?;
+            let loc = Location {
+                level: d.level,
+                view: d.viewpoint,
+                y: d.grid.cell_y,
+                x: d.grid.cell_x,
+            };
+            let (problem, _, _) = detector.problem_at(pyr, &loc);
+            let (sum, n) = d
+                .cells
+                .iter()
+                .zip(&problem.u1)
+                .filter(|(v, _)| **v)
+                .fold((0.0, 0usize), |(s, n), (_, u)| (s + u, n + 1));
+            if n > 0 {
+                let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+                let (_, refined) = detection_masks(d, pyr, &params.refine, shape);
+                t.claim(pyr, &refined, (sum / n as f64) as f32);
+            }
+        }
+    }
     stats.locations += s.locations;
     stats.min_cuts += s.min_cuts;
     timing.responses += s.responses_ms;

@@ -4,7 +4,7 @@ use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use sdhop::train::ko8::above_threshold;
-use sdhop::vision::detect::{box_iou, DetectParams, Detector, Region};
+use sdhop::vision::detect::{box_iou, DetectParams, Detector, Region, Transfer};
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
 use sdhop::vision::pyramid::FeaturePyramid;
@@ -345,5 +345,72 @@ fn dropping_low_scores_equals_detecting_at_a_higher_threshold() {
             );
         }
         assert!(low.detections.len() > at(t0 + 0.5).detections.len());
+    }
+}
+
+/// Response transfer (paper, Algorithm 1): with the occluder's pixels
+/// claimed by another object's detection, every energy can only fall, so
+/// the best score rises or stays; the occluded cells under the claim are
+/// labelled hidden at least as often; and pruning stays exact (every box
+/// meeting a claimed cell is solved).
+#[test]
+fn response_transfer_explains_the_occluder_and_stays_exact() {
+    let (model, scenes) = scanned_scenes(3);
+    let plain = Detector::new(&model.views).unwrap();
+    for (s, pyr) in &scenes {
+        // The occluder: the object's pixels that are hidden.
+        let mut occluder = Mask::new(s.object.width, s.object.height);
+        for y in 0..s.object.height {
+            for x in 0..s.object.width {
+                occluder.set(x, y, s.object.get(x, y) && !s.visible.get(x, y));
+            }
+        }
+        let mut transfer = Transfer::new(pyr);
+        assert!(transfer.is_empty());
+        transfer.claim(pyr, &occluder, -1.0);
+        assert!(!transfer.is_empty());
+        let with = Detector::new(&model.views)
+            .unwrap()
+            .with_transfer(&transfer);
+        let t0 = model.meta.detection.threshold;
+        for (threshold, max_detections) in [(t0, 1), (t0 - 1.0, 5), (t0 - 3.0, 20)] {
+            let mut p = DetectParams {
+                max_detections,
+                threshold,
+                ..model.meta.detection
+            };
+            p.prune = true;
+            let (pruned, _) = with.detect(pyr, &p).unwrap();
+            p.prune = false;
+            let (full, _) = with.detect(pyr, &p).unwrap();
+            assert_eq!(pruned, full, "threshold {threshold}, max {max_detections}");
+        }
+        let p = DetectParams {
+            max_detections: 1,
+            threshold: t0 - 3.0,
+            ..model.meta.detection
+        };
+        let before = plain.detect(pyr, &p).unwrap().0;
+        let after = with.detect(pyr, &p).unwrap().0;
+        let (b, a) = (&before[0], &after[0]);
+        assert!(a.score >= b.score - 1e-9, "{} < {}", a.score, b.score);
+        if a.level == b.level && a.grid.cell_x == b.grid.cell_x && a.grid.cell_y == b.grid.cell_y {
+            let hidden = |d: &sdhop::vision::detect::Detection| {
+                d.cells
+                    .iter()
+                    .enumerate()
+                    .filter(|(i, v)| {
+                        let (cx, cy) = (
+                            d.grid.cell_x + (i % d.grid.cols) as isize,
+                            d.grid.cell_y + (i / d.grid.cols) as isize,
+                        );
+                        !**v && cx >= 0
+                            && cy >= 0
+                            && transfer.at(d.level, cx as usize, cy as usize).is_some()
+                    })
+                    .count()
+            };
+            assert!(hidden(a) >= hidden(b), "{} < {}", hidden(a), hidden(b));
+        }
     }
 }

@@ -47,6 +47,10 @@ pub(crate) struct BopEvalArgs {
     /// segmentation (visib_fract >= 0.4), with the evaluated models only.
     #[arg(long)]
     pub(crate) pose: bool,
+    /// Also score the evaluated models with response transfer between
+    /// them (`transfer=true` of `POST /detect`), as a further variant.
+    #[arg(long)]
+    pub(crate) transfer: bool,
     /// Only every n-th photograph (a quick check).
     #[arg(long, default_value_t = 1)]
     pub(crate) every: usize,
@@ -143,6 +147,7 @@ fn evaluate(
     images: &[usize],
     args: &BopEvalArgs,
     pose: bool,
+    transfer: bool,
     meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
 ) -> Result<Variant, Failure> {
     let models = load_model_dir(dir)?;
@@ -169,6 +174,7 @@ fn evaluate(
         threshold: Some(args.threshold),
         max_detections: Some(args.max_detections),
         masks: MaskMode::Both,
+        transfer,
         ..DetectOptions::default()
     };
     let pb = progress_bar(images.len() as u64, &format!("{name}: detecting"));
@@ -386,11 +392,26 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
         &images,
         args,
         args.pose,
+        false,
         &meshes,
     )?];
     print_variant(&variants[0]);
+    if args.transfer {
+        let v = evaluate(
+            "sdhop+transfer",
+            &args.models_dir,
+            &bop,
+            &images,
+            args,
+            false,
+            true,
+            &meshes,
+        )?;
+        print_variant(&v);
+        variants.push(v);
+    }
     for (name, dir) in &args.compare {
-        let v = evaluate(name, dir, &bop, &images, args, false, &meshes)?;
+        let v = evaluate(name, dir, &bop, &images, args, false, false, &meshes)?;
         print_variant(&v);
         variants.push(v);
     }

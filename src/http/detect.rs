@@ -42,6 +42,8 @@ pub struct DetectQuery {
     pub format: Option<Format>,
     pub rle: RleFormat,
     pub timeout: Option<Duration>,
+    /// Response transfer between the models (see `DetectOptions::transfer`).
+    pub transfer: bool,
 }
 
 impl DetectQuery {
@@ -60,6 +62,7 @@ impl DetectQuery {
             format: None,
             rle: RleFormat::Uncompressed,
             timeout: None,
+            transfer: false,
         };
         let bad = |k: &str, v: &str, why: &str| {
             ApiError::BadRequest(format!("query parameter {k}={v:?}: {why}"))
@@ -116,6 +119,13 @@ impl DetectQuery {
                     }
                 }
                 "timeout_ms" => q.timeout = Some(timeout_param(&v, max_timeout)?),
+                "transfer" => {
+                    q.transfer = match v.as_ref() {
+                        "true" => true,
+                        "false" => false,
+                        _ => return Err(bad(&k, &v, "expected true or false")),
+                    }
+                }
                 _ => return Err(bad(&k, &v, "unknown parameter")),
             }
         }
@@ -285,6 +295,7 @@ pub async fn detect(
             max_pixels: limits.max_pixels,
             region: None,
             deadline: Deadline::NONE,
+            transfer: query.transfer,
         },
     };
     let resp = state.infer.detect(permit, task, deadline).await?;

@@ -160,7 +160,16 @@ impl Detector<'_> {
                 let f = &w.w_vis[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
                 let b = &w.w_occ[i * HOG_STRIDE..(i + 1) * HOG_STRIDE];
                 p.u1[i] = f64::from(dot(f, phi));
-                p.u0[i] = f64::from(dot(b, phi)) + prior;
+                // Response transfer: where another object's detection
+                // claimed the cell, the occlusion is explained by it: the
+                // occlusion filter's response counts no more than its
+                // collected object response, and never more than 0 (see
+                // `transfer.rs` for why it is capped and not replaced).
+                let occ = match self.transfer.and_then(|t| t.at(loc.level, cx, cy)) {
+                    Some(c) => dot(b, phi).min(c.max(0.0)),
+                    None => dot(b, phi),
+                };
+                p.u0[i] = f64::from(occ) + prior;
                 let seg = level.cell_segments[cy * mw + cx] as usize;
                 if s.seg_stamp[seg] != s.generation {
                     s.seg_stamp[seg] = s.generation;

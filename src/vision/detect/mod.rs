@@ -25,6 +25,7 @@
 
 mod bounds;
 mod location;
+mod transfer;
 
 use std::time::Instant;
 
@@ -45,6 +46,7 @@ pub use bounds::{
     chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
 };
 use bounds::{overlap, positions, CliqueCounter, PlanarMap};
+pub use transfer::Transfer;
 
 /// Detection settings.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -262,6 +264,8 @@ fn margin(v: f64) -> f64 {
 /// An SD-HOP detector over the viewpoints of one model.
 pub struct Detector<'a> {
     views: Vec<View<'a>>,
+    /// Responses transferred from other objects' detections.
+    transfer: Option<&'a Transfer>,
 }
 
 impl<'a> Detector<'a> {
@@ -281,7 +285,18 @@ impl<'a> Detector<'a> {
                 Ok(View { w, hop_min, w_hop })
             })
             .collect::<Result<Vec<_>, VisionError>>()?;
-        Ok(Self { views })
+        Ok(Self {
+            views,
+            transfer: None,
+        })
+    }
+
+    /// The detector with the occlusion responses of the cells that
+    /// `transfer` claims replaced by their collected responses (response
+    /// transfer, see [`Transfer`]).
+    pub fn with_transfer(mut self, transfer: &'a Transfer) -> Self {
+        self.transfer = (!transfer.is_empty()).then_some(transfer);
+        self
     }
 
     /// Scans a pyramid. Returns the detections (best first) and statistics.
@@ -445,7 +460,37 @@ impl<'a> Detector<'a> {
                 box_iou(self.grid(pyr, &c.location()).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
             });
         }
-        stats.pruned_stage1 = stats.locations - cands.len();
+        if let Some(tr) = self.transfer {
+            // Transferred responses can lower an energy below its stage-1
+            // bound: every location meeting a claimed cell is visited.
+            let mut seen = std::collections::HashSet::new();
+            for c in cands.iter_mut() {
+                let w = self.views[c.view].w;
+                if tr.meets(c.level, c.x, c.y, w.cols, w.rows) {
+                    c.bound = f64::NEG_INFINITY;
+                }
+                seen.insert(c.location());
+            }
+            for loc in self.locations(pyr, params.max_truncation) {
+                let w = self.views[loc.view].w;
+                if seen.contains(&loc) || !tr.meets(loc.level, loc.x, loc.y, w.cols, w.rows) {
+                    continue;
+                }
+                let c = Candidate {
+                    view: loc.view,
+                    level: loc.level,
+                    x: loc.x,
+                    y: loc.y,
+                    bound: f64::NEG_INFINITY,
+                };
+                if params.region.is_none_or(|r| {
+                    box_iou(self.grid(pyr, &loc).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
+                }) {
+                    cands.push(c);
+                }
+            }
+        }
+        stats.pruned_stage1 = stats.locations.saturating_sub(cands.len());
         stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
         // Visit in order of the bound (ties in a fixed order).
         cands.sort_by(|a, b| {
