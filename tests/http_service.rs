@@ -661,6 +661,18 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     assert_eq!(s, 200);
     assert_eq!(h[CONTENT_TYPE], "image/png");
     assert!(h.contains_key("x-detections"));
+    // Response transfer between the loaded models.
+    let (s, _, _) = call(
+        &spec,
+        &mut seen,
+        "/detect",
+        "post",
+        detect("?transfer=true")
+            .header(CONTENT_TYPE, "image/png")
+            .body(png.clone()),
+    )
+    .await;
+    assert_eq!(s, 200);
 
     // 4xx.
     let cases: Vec<(&str, reqwest::RequestBuilder, u16)> = vec![
@@ -683,6 +695,13 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
             detect("?max_detections=lots")
                 .header(CONTENT_TYPE, "image/png")
                 .body(vec![7u8; 3 << 20]),
+            400,
+        ),
+        (
+            "transfer neither true nor false",
+            detect("?transfer=maybe")
+                .header(CONTENT_TYPE, "image/png")
+                .body(png.clone()),
             400,
         ),
         (
