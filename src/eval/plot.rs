@@ -64,6 +64,51 @@ fn read_published(path: &Path) -> Vec<Vec<(f64, f64)>> {
         .collect()
 }
 
+/// A recall (0 to 1) against FPPI (0 to 1) chart on `panel` with its
+/// caption and axes (a bare grid without a font).
+fn recall_panel<'a, 'b>(
+    panel: &'a DrawingArea<BitMapBackend<'b>, plotters::coord::Shift>,
+    caption: &str,
+    x_desc: &str,
+    text: bool,
+) -> Result<
+    ChartContext<
+        'a,
+        BitMapBackend<'b>,
+        Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+    >,
+    PlotError,
+> {
+    let mut builder = ChartBuilder::on(panel);
+    builder.margin(8);
+    if text {
+        builder
+            .caption(caption, ("sans-serif", 15))
+            .x_label_area_size(28)
+            .y_label_area_size(34);
+    }
+    let mut chart = builder
+        .build_cartesian_2d(0.0..1.0f64, 0.0..1.0f64)
+        .map_err(draw_err)?;
+    if text {
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc("recall")
+            .label_style(("sans-serif", 11))
+            .draw()
+            .map_err(draw_err)?;
+    } else {
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .disable_y_mesh()
+            .draw()
+            .map_err(draw_err)?;
+    }
+    Ok(chart)
+}
+
 const PUBLISHED: [&str; 4] = ["LINE2D", "rLINE2D", "rLINE2D+OPP", "rLINE2D+OCLP"];
 
 /// Draws the panels into a PNG at `out`. `published_dir` holds
@@ -90,36 +135,8 @@ pub fn recall_fppi_png(
             RGBColor(230, 140, 40),
         ];
         for (panel, s) in panels.iter().zip(scores) {
-            let mut builder = ChartBuilder::on(panel);
-            builder.margin(8);
-            if text {
-                builder
-                    .caption(
-                        format!("{} AUC {:.3} / cross {:.3}", s.object, s.auc, s.auc_cross),
-                        ("sans-serif", 15),
-                    )
-                    .x_label_area_size(28)
-                    .y_label_area_size(34);
-            }
-            let mut chart = builder
-                .build_cartesian_2d(0.0..1.0f64, 0.0..1.0f64)
-                .map_err(draw_err)?;
-            if text {
-                chart
-                    .configure_mesh()
-                    .x_desc("FPPI")
-                    .y_desc("recall")
-                    .label_style(("sans-serif", 11))
-                    .draw()
-                    .map_err(draw_err)?;
-            } else {
-                chart
-                    .configure_mesh()
-                    .disable_x_mesh()
-                    .disable_y_mesh()
-                    .draw()
-                    .map_err(draw_err)?;
-            }
+            let caption = format!("{} AUC {:.3} / cross {:.3}", s.object, s.auc, s.auc_cross);
+            let mut chart = recall_panel(panel, &caption, "FPPI", text)?;
             let published = read_published(&published_dir.join(format!("{}.txt", s.object)));
             for (i, curve) in published.iter().enumerate() {
                 let color = grey[i.min(3)];
@@ -207,33 +224,7 @@ pub fn variants_png(variants: &[VariantCurves], out: &Path) -> Result<(), PlotEr
         root.fill(&WHITE).map_err(draw_err)?;
         let panels = root.split_evenly((rows, cols));
         for (panel, object) in panels.iter().zip(&objects) {
-            let mut builder = ChartBuilder::on(panel);
-            builder.margin(8);
-            if text {
-                builder
-                    .caption(object.as_str(), ("sans-serif", 15))
-                    .x_label_area_size(28)
-                    .y_label_area_size(34);
-            }
-            let mut chart = builder
-                .build_cartesian_2d(0.0..1.0f64, 0.0..1.0f64)
-                .map_err(draw_err)?;
-            if text {
-                chart
-                    .configure_mesh()
-                    .x_desc("false positives per image")
-                    .y_desc("recall")
-                    .label_style(("sans-serif", 11))
-                    .draw()
-                    .map_err(draw_err)?;
-            } else {
-                chart
-                    .configure_mesh()
-                    .disable_x_mesh()
-                    .disable_y_mesh()
-                    .draw()
-                    .map_err(draw_err)?;
-            }
+            let mut chart = recall_panel(panel, object, "false positives per image", text)?;
             for (v, (name, curves)) in variants.iter().enumerate() {
                 let Some((_, pts)) = curves.iter().find(|(n, _)| n == *object) else {
                     continue;
@@ -283,4 +274,43 @@ pub fn variants_png(variants: &[VariantCurves], out: &Path) -> Result<(), PlotEr
         .ok_or_else(|| PlotError::Draw("buffer size".into()))?;
     img.save(out)
         .map_err(|e| PlotError::Io(out.display().to_string(), e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Both plots write a PNG with a panel per object (4 per row).
+    #[test]
+    fn plots_write_a_panel_per_object() {
+        let dir = std::env::temp_dir().join(format!("sdhop-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let curve = vec![(0.0, 0.0), (0.0, 0.5), (0.4, 0.5), (1.2, 0.8)];
+        let objects: Vec<(String, Vec<(f64, f64)>)> = ["ape", "cat", "duck", "glue", "can"]
+            .iter()
+            .map(|o| (o.to_string(), curve.clone()))
+            .collect();
+        let variants = vec![
+            ("sdhop".to_string(), objects.clone()),
+            ("plain".to_string(), objects),
+        ];
+        let out = dir.join("variants.png");
+        variants_png(&variants, &out).unwrap();
+        let img = image::open(&out).unwrap();
+        assert_eq!((img.width(), img.height()), (4 * 360, 2 * 300));
+        let scores: Vec<ObjectScore> = ["cup", "pitcher"]
+            .iter()
+            .map(|o| ObjectScore {
+                object: o.to_string(),
+                curve: vec![0.5; GRID],
+                curve_cross: vec![0.4; GRID],
+                ..ObjectScore::default()
+            })
+            .collect();
+        let out = dir.join("recall.png");
+        recall_fppi_png(&scores, &dir, &out).unwrap();
+        let img = image::open(&out).unwrap();
+        assert_eq!((img.width(), img.height()), (4 * 360, 300));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
