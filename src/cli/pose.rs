@@ -14,13 +14,16 @@ pub(crate) struct PoseArgs {
     /// JSON parameters: {"intrinsics": {"fx", "fy", "cx", "cy"},
     /// "initial_pose": {"rotation": [[3x3]], "translation": [x, y, z]},
     /// "model": NAME, "mask": "detect" | "provided" | "none",
-    /// "max_iterations": N}; the pose is camera-from-object.
+    /// "max_iterations": N}; the pose is camera-from-object. Without
+    /// "initial_pose", "model" (a detector trained from the mesh) gives
+    /// the start poses.
     #[arg(long)]
     pub(crate) params: PathBuf,
     /// Visibility mask (PNG, non-zero = visible) for "mask": "provided".
     #[arg(long)]
     pub(crate) mask: Option<PathBuf>,
-    /// Folder of detector models for "mask": "detect".
+    /// Folder of detector models for "mask": "detect" or a request
+    /// without "initial_pose".
     #[arg(long, default_value = "models")]
     pub(crate) models_dir: PathBuf,
     /// Largest image, in pixels.
@@ -45,7 +48,7 @@ pub(crate) fn run_pose(args: &PoseArgs) -> Result<(), Failure> {
         }
         None => None,
     };
-    let models = if params.mask == Some(MaskSource::Detect) {
+    let models = if params.mask == Some(MaskSource::Detect) || params.initial_pose.is_none() {
         model_paths(&args.models_dir)?
             .iter()
             .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))
