@@ -159,8 +159,14 @@ pub fn detect_options(expected: Option<(f64, f64, f64, f64)>) -> DetectOptions {
 
 /// Without an initial pose: the best detections tried.
 pub const NO_START_DETECTIONS: usize = 2;
+/// Without an initial pose, the detection threshold (scores in units of
+/// the SVM margin): the client says the object is in the image, so weaker
+/// detections than a model's own threshold (-0.75) are tried too (the
+/// threshold of the LM-O acceptance query).
+pub const NO_START_THRESHOLD: f64 = -1.5;
 /// Without an initial pose: the start poses refined per detection (the
-/// component's rotations whose silhouettes agree best with its mask).
+/// component's rotations whose silhouettes agree best with its mask, or
+/// their boxes with its box where the mask is empty).
 pub const NO_START_POSES: usize = 3;
 /// Without an initial pose, the default uncertainty of the start poses
 /// (rotation, degrees; translation as a share of the start's depth):
@@ -238,10 +244,11 @@ impl PoseParams {
     /// its checks).
     ///
     /// Without an initial pose: the [`NO_START_DETECTIONS`] best
-    /// detections anywhere, at the model's threshold.
+    /// detections anywhere, down to [`NO_START_THRESHOLD`].
     pub fn detect_options(&self, mesh: &Mesh) -> DetectOptions {
         let Some(start) = &self.initial_pose else {
             return DetectOptions {
+                threshold: Some(NO_START_THRESHOLD),
                 max_detections: Some(NO_START_DETECTIONS),
                 masks: MaskMode::Refined,
                 ..DetectOptions::default()
@@ -516,13 +523,19 @@ fn from_detections(
     }
     let mut best: Option<(PoseResult, DetectionJson, Pose)> = None;
     let mut refined = 0usize;
+    let mut too_few: Option<PoseError> = None;
     for det in found
         .response
         .detections
         .into_iter()
         .take(NO_START_DETECTIONS)
     {
-        let det_mask = det.mask.as_ref().and_then(Mask::from_rle);
+        // An empty mask has nothing to fit: the box alone then.
+        let det_mask = det
+            .mask
+            .as_ref()
+            .and_then(Mask::from_rle)
+            .filter(|m| m.area() > 0);
         let rotations = found
             .view_rotations
             .get(det.viewpoint)
@@ -564,7 +577,10 @@ fn from_detections(
             ) {
                 Ok(r) => r,
                 // A start whose object shows too few edges: try the next.
-                Err(PoseError::NotEnoughEdges(_)) => continue,
+                Err(e @ PoseError::NotEnoughEdges(_)) => {
+                    too_few = Some(e);
+                    continue;
+                }
                 Err(e) => return Err(e),
             };
             refined += 1;
@@ -577,7 +593,10 @@ fn from_detections(
             }
         }
     }
-    let (r, det, start) = best.ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
+    // Detections whose starts all showed too few edges say so; none at
+    // all is "not detected".
+    let (r, det, start) =
+        best.ok_or_else(|| too_few.unwrap_or_else(|| PoseError::NotDetected(name.to_string())))?;
     let used = match checked.source {
         MaskSource::Detect => MaskUsed::Detected,
         MaskSource::Provided => MaskUsed::Provided,

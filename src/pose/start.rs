@@ -113,11 +113,13 @@ fn mesh_centre(mesh: &Mesh) -> Vector3<f64> {
     (lo + hi) / 2.0
 }
 
-/// A start pose and its silhouette agreement with the detection's mask.
+/// A start pose and its agreement with the detection: the IoU of its
+/// silhouette with the detection's mask, or without a mask the IoU of its
+/// projected box with the detection's box.
 #[derive(Clone, Copy, Debug)]
 pub struct Start {
     pub pose: Pose,
-    pub silhouette_iou: f64,
+    pub agreement: f64,
 }
 
 /// Depths tried about the one of the box's size, as factors: a
@@ -128,10 +130,10 @@ pub const DEPTH_FACTORS: [f64; 7] = [0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4];
 
 /// The start poses of a detection with full-extent box `bbox` and visible
 /// mask `mask`: every rotation of `rotations` placed on the box by
-/// [`pose_for_box`] at each of the [`DEPTH_FACTORS`] (along the ray
-/// through the box's centre), ranked by [`silhouette_iou`] with the mask
-/// (best first; only the box's own depth, unranked, without a mask), at
-/// most `keep`, no two with the same rotation.
+/// [`pose_for_box`] at the best of the [`DEPTH_FACTORS`] (along the ray
+/// through the box's centre), ranked by their agreement with the
+/// detection (see [`Start`]; best first), at most `keep`, no two with the
+/// same rotation.
 pub fn start_poses(
     mesh: &Mesh,
     k: &Intrinsics,
@@ -152,14 +154,12 @@ pub fn start_poses(
         let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) else {
             continue;
         };
-        let Some(m) = mask else {
-            out.push(Start {
-                pose,
-                silhouette_iou: 0.0,
-            });
-            continue;
-        };
-        // The object's centre moves along its ray with the depth.
+        // The object's centre moves along its ray with the depth; each
+        // depth is scored by the silhouette's IoU with the mask, or
+        // without a mask by the IoU of its box with the detection's
+        // full-extent box. (The sum of both, tried on the synthetic mesh
+        // test, put 5 of 20 poses within 10% as the mask alone does, with a
+        // worse median: 31 against 21 mm.)
         let mut best: Option<Start> = None;
         let centre_cam = pose.translation + r * mesh_centre(mesh);
         for f in DEPTH_FACTORS {
@@ -167,17 +167,21 @@ pub fn start_poses(
                 rotation: r,
                 translation: centre_cam * f - r * mesh_centre(mesh),
             };
-            let iou = silhouette_iou(mesh, k, &p, m, deadline)?;
-            if best.is_none_or(|b| iou > b.silhouette_iou) {
+            let score = match mask {
+                Some(m) => silhouette_iou(mesh, k, &p, m, deadline)?,
+                None => projected_box(&mesh.vertices, k, &p)
+                    .map_or(0.0, |pb| crate::vision::detect::box_iou(pb, bbox)),
+            };
+            if best.is_none_or(|b| score > b.agreement) {
                 best = Some(Start {
                     pose: p,
-                    silhouette_iou: iou,
+                    agreement: score,
                 });
             }
         }
         out.extend(best);
     }
-    out.sort_by(|a, b| b.silhouette_iou.total_cmp(&a.silhouette_iou));
+    out.sort_by(|a, b| b.agreement.total_cmp(&a.agreement));
     out.truncate(keep);
     Ok(out)
 }
@@ -217,7 +221,7 @@ mod tests {
     }
 
     /// Among rotations placed on the box, the true one agrees best with
-    /// the true silhouette and ranks first.
+    /// the true silhouette and box, and ranks first.
     #[test]
     fn the_true_rotation_ranks_first_by_silhouette() {
         let mesh = Mesh::cuboid(80.0, 30.0, 20.0);
@@ -258,8 +262,8 @@ mod tests {
         let starts =
             start_poses(&mesh, &k(), b, Some(&mask), &rotations, 2, &Deadline::NONE).unwrap();
         assert_eq!(starts.len(), 2);
-        assert!(starts[0].silhouette_iou > 0.95, "{:?}", starts[0]);
+        assert!(starts[0].agreement > 0.95, "{:?}", starts[0]);
         assert!((starts[0].pose.rotation - truth.rotation).norm() < 1e-9);
-        assert!(starts[1].silhouette_iou < starts[0].silhouette_iou);
+        assert!(starts[1].agreement < starts[0].agreement);
     }
 }
