@@ -328,6 +328,7 @@ fn print_variant(v: &Variant) {
             "object", "n", "ADD<10%d", "BOP succ", "refused", "s median"
         );
         let mut names: Vec<&str> = v.pose.iter().map(|p| p.object.as_str()).collect();
+        names.sort_unstable();
         names.dedup();
         for name in names.iter().copied().chain(std::iter::once("all")) {
             let rs: Vec<&PoseOutcome> = v
