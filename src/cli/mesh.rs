@@ -47,6 +47,10 @@ pub(crate) struct MeshArgs {
     /// Range of the share of the object's box an occluder covers.
     #[arg(long, value_parser = parse_pair, default_value = "0.1,0.6")]
     pub(crate) occlusion: [f64; 2],
+    /// Share of the occluders filled with a patch of another background
+    /// photograph (the rest: a smooth colour).
+    #[arg(long, default_value_t = RenderParams::default().patch_occluders)]
+    pub(crate) patch_occluders: f64,
     /// Background images used as negatives (the first ones by name).
     #[arg(long, default_value_t = 50)]
     pub(crate) negatives: usize,
@@ -281,6 +285,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         size: args.size,
         occluded_share: args.occluded_share,
         occlusion: args.occlusion,
+        patch_occluders: args.patch_occluders,
         seed: args.render_seed,
         ..RenderParams::default()
     };

@@ -41,6 +41,12 @@ pub struct RenderParams {
     /// fraction of the object's box it covers.
     pub occluded_share: f64,
     pub occlusion: [f64; 2],
+    /// Share of the occluders filled with a patch of another background
+    /// photograph; the others are a smooth colour. Patches of the very
+    /// photographs that are the negatives teach the occlusion filter that
+    /// background is occluder: with patches only, LM-O duck scored AUC
+    /// 0.000 (every 4th photograph), with smooth colours only 0.148.
+    pub patch_occluders: f64,
     /// Render size in pixels (the object and some context).
     pub width: usize,
     pub height: usize,
@@ -59,6 +65,7 @@ impl Default for RenderParams {
             size: [40.0, 110.0],
             occluded_share: 0.3,
             occlusion: [0.1, 0.6],
+            patch_occluders: 0.0,
             width: 320,
             height: 240,
             focal: 575.0,
@@ -91,8 +98,11 @@ impl RenderParams {
         if !(0.0..=1.0).contains(&self.occluded_share)
             || !(0.0..=0.95).contains(&self.occlusion[0])
             || !(self.occlusion[0]..=0.95).contains(&self.occlusion[1])
+            || !(0.0..=1.0).contains(&self.patch_occluders)
         {
-            return bad("occlusion shares must lie in 0..0.95, MIN <= MAX");
+            return bad(
+                "occlusion shares must lie in 0..0.95, MIN <= MAX, patch_occluders in 0..1",
+            );
         }
         if !(self.focal > 0.0 && self.focal.is_finite()) {
             return bad("focal must be > 0");
@@ -420,7 +430,22 @@ pub fn render_set(
             let occlude = rng.range_f64(params.occlusion[0], params.occlusion[1]);
             let shape = occluder_shape((bx0, by0, bx1, by1), occlude, w, h, &mut rng);
             let other = &backgrounds[rng.range_usize(0, backgrounds.len())];
-            let patch = background_crop(other, w, h, &mut rng);
+            let mut patch = background_crop(other, w, h, &mut rng);
+            if rng.next_f64() >= params.patch_occluders {
+                // A smooth colour (a random colour with a gentle
+                // gradient): unlike a patch of a background photograph,
+                // it never looks like the negatives.
+                let base: [f64; 3] = std::array::from_fn(|_| rng.range_f64(20.0, 235.0));
+                let (gx, gy) = (rng.range_f64(-0.6, 0.6), rng.range_f64(-0.6, 0.6));
+                for y in 0..h {
+                    for x in 0..w {
+                        for (c, b) in base.iter().enumerate() {
+                            patch[(y * w + x) * 3 + c] =
+                                (b + gx * x as f64 + gy * y as f64).clamp(0.0, 255.0) as f32;
+                        }
+                    }
+                }
+            }
             let tint = rng.range_f64(0.6, 1.3) as f32;
             for p in 0..w * h {
                 if shape.data[p] != 0 {
