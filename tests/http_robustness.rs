@@ -333,7 +333,9 @@ async fn sigterm_exits_within_the_grace_period_while_a_long_computation_runs() {
     let img = encode(&synthetic_scene(4, 4000, 3000), image::ImageFormat::Png);
     let long = tokio::spawn(
         reqwest::Client::new()
-            .post(format!("{base}/detect?timeout_ms=300000&threshold=-1000"))
+            .post(format!(
+                "{base}/detect?timeout_ms=300000&threshold=-1000&max_detections=100&masks=both"
+            ))
             .header(CONTENT_TYPE, "image/png")
             .body(img)
             .send(),
