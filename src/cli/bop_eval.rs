@@ -13,12 +13,12 @@ use std::time::Instant;
 use nalgebra::Vector3;
 
 use super::*;
-use crate::data::bop::{Bop, BopImage, LINEMOD_NAMES};
+use crate::data::bop::{Bop, LINEMOD_NAMES};
 use crate::eval::bop_detect::{add_s, score_object, scored_instance, DetectScore};
-use crate::eval::bop_pose::{add, errors};
+use crate::eval::bop_pose::{add, add_points, errors, intrinsics, truth_pose};
 use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
 use crate::pose::api::{estimate, PoseParams};
-use crate::pose::geometry::{Intrinsics, Pose};
+use crate::pose::geometry::Pose;
 use crate::pose::Mesh;
 
 #[derive(clap::Args)]
@@ -114,30 +114,6 @@ fn id_of(label: &str) -> Option<u32> {
         .map(|(id, _)| *id)
 }
 
-fn visible_mask(bop: &Bop, image: &BopImage, k: usize) -> Option<Mask> {
-    let img = image::open(bop.mask_visib_path(image, k)).ok()?.to_luma8();
-    let (w, h) = img.dimensions();
-    let mut m = Mask::new(w as usize, h as usize);
-    for (x, y, p) in img.enumerate_pixels() {
-        m.set(x as usize, y as usize, p.0[0] != 0);
-    }
-    Some(m)
-}
-
-fn intrinsics(image: &BopImage) -> Intrinsics {
-    let k = image.cam_k;
-    Intrinsics {
-        fx: k[0],
-        fy: k[4],
-        cx: k[2],
-        cy: k[5],
-    }
-}
-
-fn pose_of(rows: &[[f64; 3]; 3], t: &[f64; 3]) -> Option<Pose> {
-    Pose::from_client(*rows, *t).ok()
-}
-
 /// Scores one folder of models.
 #[allow(clippy::too_many_arguments)]
 fn evaluate(
@@ -199,7 +175,7 @@ fn evaluate(
                 *id,
                 label,
                 args.max_oracle_gap,
-                |im, k| visible_mask(bop, im, k),
+                |im, k| crate::data::load_mask(&bop.mask_visib_path(im, k)).ok(),
             )
         })
         .collect();
@@ -227,12 +203,8 @@ fn evaluate(
         for (i, k, label, obj) in cases {
             let image = &bop.images[i];
             let g = &image.instances[k];
-            let r = g.rotation;
-            let truth = pose_of(
-                &[[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
-                &g.translation,
-            )
-            .ok_or_else(|| Failure::input(format!("image {}: bad pose", image.id)))?;
+            let truth = truth_pose(g)
+                .ok_or_else(|| Failure::input(format!("image {}: bad pose", image.id)))?;
             let (mesh, points) = &meshes[&obj];
             let info = &bop.models[&obj];
             let img = read_image(&bop.rgb_path(image), usize::MAX)?;
@@ -262,7 +234,7 @@ fn evaluate(
             };
             match answer {
                 Ok(a) => {
-                    if let Some(est) = pose_of(&a.pose.rotation, &a.pose.translation) {
+                    if let Ok(est) = Pose::from_client(a.pose.rotation, a.pose.translation) {
                         let symmetric = !info.symmetries_discrete.is_empty();
                         let e = if symmetric {
                             add_s(&est, &truth, points)
@@ -380,9 +352,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
             };
             let mesh = Mesh::parse(&bytes)
                 .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
-            // At most 1000 points for ADD(-S), evenly through the list.
-            let step = (mesh.vertices.len() / 1000).max(1);
-            let points: Vec<Vector3<f64>> = mesh.vertices.iter().step_by(step).copied().collect();
+            let points = add_points(&mesh, 1000);
             meshes.insert(obj, (mesh, points));
         }
     }

@@ -204,6 +204,35 @@ pub fn start_pose(truth: &Pose, seed: u64, key: (u32, u32, usize), degrees: f64,
 /// The instances of a row: per object, those in the row's visibility
 /// range and within the oracle gap, in a seeded order, at most
 /// `per_object`.
+/// The annotated pose of an instance, its rotation projected to the
+/// nearest rotation (BOP's are up to 1% off orthonormal).
+pub fn truth_pose(instance: &Instance) -> Option<Pose> {
+    let r = &instance.rotation;
+    let m = Matrix3::new(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]);
+    Some(Pose {
+        rotation: nearest_rotation(&m)?,
+        translation: Vector3::from(instance.translation),
+    })
+}
+
+/// The camera of an image (`cam_K`).
+pub fn intrinsics(image: &BopImage) -> Intrinsics {
+    let k = &image.cam_k;
+    Intrinsics {
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    }
+}
+
+/// At most about `most` of a mesh's vertices, evenly through its list:
+/// the points of ADD(-S).
+pub fn add_points(mesh: &Mesh, most: usize) -> Vec<Vector3<f64>> {
+    let stride = mesh.vertices.len().div_ceil(most.max(1)).max(1);
+    mesh.vertices.iter().step_by(stride).copied().collect()
+}
+
 pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
     let mut out = Vec::new();
     for &obj in &sel.objects {
@@ -225,14 +254,8 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
             cands.swap(i, j);
         }
         for (image, instance) in cands.into_iter().take(sel.per_object) {
-            let r = &instance.rotation;
-            let m = Matrix3::new(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]);
-            let Some(rotation) = nearest_rotation(&m) else {
+            let Some(truth) = truth_pose(instance) else {
                 continue;
-            };
-            let truth = Pose {
-                rotation,
-                translation: Vector3::from(instance.translation),
             };
             let start = start_pose(
                 &truth,
@@ -275,19 +298,11 @@ pub fn run(
         let info = bop.models.get(&inst.obj_id);
         let diameter = info.map_or(f64::INFINITY, |m| m.diameter);
         let symmetries = info.map_or(&[][..], |m| &m.symmetries_discrete[..]);
-        let k = &im.cam_k;
-        let intrinsics = Intrinsics {
-            fx: k[0],
-            fy: k[4],
-            cx: k[2],
-            cy: k[5],
-        };
+        let intrinsics = intrinsics(im);
         let (_, t0, a0) = errors(&case.start, &case.truth, symmetries);
-        // At most about 2000 of the mesh's vertices, evenly.
-        let points: Vec<Vector3<f64>> = meshes.get(&inst.obj_id).map_or(Vec::new(), |m| {
-            let stride = m.vertices.len().div_ceil(2000).max(1);
-            m.vertices.iter().step_by(stride).copied().collect()
-        });
+        let points = meshes
+            .get(&inst.obj_id)
+            .map_or(Vec::new(), |m| add_points(m, 2000));
         let add0 = add(&case.start, &case.truth, symmetries, &points);
         // The outcome of an answer (`None`: the start, or a failed
         // request, which is scored as the start).
