@@ -54,6 +54,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             truth,
             kind: LossKind::SdHop,
             seg_weight: 1.0,
+            views: None,
         };
         if std::env::var("BOUNDS").is_ok() && !pos {
             bound_gaps(&det, &pyr);

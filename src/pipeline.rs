@@ -32,9 +32,13 @@ pub enum MaskMode {
 }
 
 /// Request options; `None` means the model's default.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct DetectOptions {
     pub threshold: Option<f64>,
+    /// Each model finds this many at most (per object for a model of
+    /// several objects trained jointly, whose objects' detections are
+    /// suppressed and counted on their own), and the answer keeps the best
+    /// this many of all.
     pub max_detections: Option<usize>,
     pub masks: MaskMode,
     /// Exact pruning (off only to check it).
@@ -49,6 +53,9 @@ pub struct DetectOptions {
     /// its own threshold claims the cells of its visible mask for the
     /// models after it (see [`crate::vision::detect::Transfer`]).
     pub transfer: bool,
+    /// Only the detections of this object (label), e.g. one object of a
+    /// model of several.
+    pub label: Option<String>,
 }
 
 impl Default for DetectOptions {
@@ -62,6 +69,7 @@ impl Default for DetectOptions {
             region: None,
             deadline: Deadline::NONE,
             transfer: false,
+            label: None,
         }
     }
 }
@@ -304,11 +312,21 @@ fn run_model(
     params.prune = opts.prune;
     params.region = opts.region;
     params.deadline = opts.deadline;
+    // A model of several objects (trained jointly): each object's
+    // detections are suppressed and counted on their own, as separate
+    // models' would be.
+    let labels = model.labels();
+    let groups: Vec<usize> = m
+        .viewpoints
+        .iter()
+        .map(|v| labels.iter().position(|l| *l == v.label).unwrap_or(0))
+        .collect();
+    let detector = Detector::new(&model.views)?.with_groups(groups)?;
     let (dets, s) = match transfer.as_deref() {
-        Some(t) => Detector::new(&model.views)?
+        Some(t) => detector
             .with_transfer(t)
             .detect_with_bounds(pyr, &params, pre)?,
-        None => Detector::new(&model.views)?.detect_with_bounds(pyr, &params, pre)?,
+        None => detector.detect_with_bounds(pyr, &params, pre)?,
     };
     if let Some(t) = transfer {
         if let Some(d) = dets.first().filter(|d| d.score >= m.detection.threshold) {
@@ -344,6 +362,10 @@ fn run_model(
         if opts.deadline.passed() {
             return Err(VisionError::DeadlineExceeded);
         }
+        let label = &m.viewpoints[d.viewpoint].label;
+        if opts.label.as_ref().is_some_and(|l| l != label) {
+            continue;
+        }
         let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
         let mut score = d.score;
         let object_colours = shape.and_then(|s| s.colours.as_ref());
@@ -368,7 +390,7 @@ fn run_model(
             )
         };
         detections.push(DetectionJson {
-            label: m.viewpoints[d.viewpoint].label.clone(),
+            label: label.clone(),
             model: m.name.clone(),
             score,
             bbox: BoxJson {

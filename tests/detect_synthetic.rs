@@ -290,7 +290,7 @@ fn bad_inputs_give_errors_or_empty_results() {
     let img = ColorImage::new(64, 64, vec![0.0; 64 * 64 * 3]).unwrap();
     let small = DetectOptions {
         max_pixels: 1000,
-        ..opts
+        ..opts.clone()
     };
     assert!(matches!(
         detect_image(&img, &[&model], &small),
@@ -411,6 +411,60 @@ fn response_transfer_explains_the_occluder_and_stays_exact() {
                     .count()
             };
             assert!(hidden(a) >= hidden(b), "{} < {}", hidden(a), hidden(b));
+        }
+    }
+}
+
+/// Two objects in one detector (a model trained jointly): each group's
+/// detections are exactly those of its object's viewpoints alone (its own
+/// suppression and `max_detections`), and pruning stays exact.
+#[test]
+fn grouped_viewpoints_detect_as_separate_models_and_pruning_stays_exact() {
+    let (first, scenes) = scanned_scenes(3);
+    let other = SynthObject {
+        cols: 8,
+        rows: 12,
+        seed: 23,
+    };
+    let second = hand_model(&other, "other", true, &HandModelParams::default()).unwrap();
+    let views: Vec<_> = first.views.iter().chain(&second.views).cloned().collect();
+    let n1 = first.views.len();
+    let groups: Vec<usize> = (0..views.len()).map(|v| usize::from(v >= n1)).collect();
+    let joint = Detector::new(&views)
+        .unwrap()
+        .with_groups(groups.clone())
+        .unwrap();
+    assert!(Detector::new(&views).unwrap().with_groups(vec![0]).is_err());
+    let alone = [
+        Detector::new(&first.views).unwrap(),
+        Detector::new(&second.views).unwrap(),
+    ];
+    let t0 = first.meta.detection.threshold;
+    for (_, pyr) in &scenes {
+        for (threshold, max_detections) in [(t0, 1), (t0 - 1.0, 5), (t0 - 3.0, 20)] {
+            let mut p = DetectParams {
+                max_detections,
+                threshold,
+                ..first.meta.detection
+            };
+            p.prune = true;
+            let (pruned, _) = joint.detect(pyr, &p).unwrap();
+            p.prune = false;
+            let (full, _) = joint.detect(pyr, &p).unwrap();
+            assert_eq!(pruned, full, "threshold {threshold}, max {max_detections}");
+            for (g, det) in alone.iter().enumerate() {
+                let (own, _) = det.detect(pyr, &p).unwrap();
+                let mut mine: Vec<_> = full
+                    .iter()
+                    .filter(|d| groups[d.viewpoint] == g)
+                    .cloned()
+                    .collect();
+                for d in &mut mine {
+                    d.viewpoint -= g * n1;
+                }
+                assert!(mine.len() <= max_detections);
+                assert_eq!(mine, own, "group {g}, threshold {threshold}");
+            }
         }
     }
 }

@@ -19,15 +19,21 @@ use sdhop::vision::pyramid::FeaturePyramid;
 /// An ASCII PLY of a box with one colour per vertex (a red top, a blue
 /// bottom: the renders must show colour for the colour model to learn).
 fn coloured_box_ply() -> String {
-    let mesh = Mesh::cuboid(60.0, 40.0, 30.0);
+    coloured_cuboid_ply([60.0, 40.0, 30.0], [[220, 90, 40], [40, 90, 200]])
+}
+
+/// An ASCII PLY of a cuboid of sides `size`, its top vertices of colour
+/// `rgb[0]` and its bottom ones of `rgb[1]`.
+fn coloured_cuboid_ply(size: [f64; 3], rgb: [[u8; 3]; 2]) -> String {
+    let mesh = Mesh::cuboid(size[0], size[1], size[2]);
     let mut s = format!(
         "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
         mesh.vertices.len(),
         mesh.triangles.len()
     );
     for v in &mesh.vertices {
-        let (r, b) = if v.z > 0.0 { (220, 40) } else { (40, 200) };
-        s.push_str(&format!("{} {} {} {r} 90 {b}\n", v.x, v.y, v.z));
+        let [r, g, b] = rgb[usize::from(v.z <= 0.0)];
+        s.push_str(&format!("{} {} {} {r} {g} {b}\n", v.x, v.y, v.z));
     }
     for t in &mesh.triangles {
         s.push_str(&format!("3 {} {} {}\n", t[0], t[1], t[2]));
@@ -153,6 +159,7 @@ fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
     let params = PoseParams {
         intrinsics: k,
         initial_pose: None,
+        label: None,
         model: Some("box".into()),
         mask: None,
         max_iterations: None,
@@ -232,5 +239,180 @@ fn mesh_training_refuses_bad_input_with_status_2() {
     let (code, err) = run(&["--mesh", junk.to_str().unwrap(), "--size", "300,400"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("size"), "{err}");
+    // Several meshes need as many names, each once.
+    let (code, err) = run(&["--mesh", junk.to_str().unwrap(), "--mesh", "b.ply"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("one name per mesh"), "{err}");
+    let (code, err) = run(&[
+        "--mesh",
+        junk.to_str().unwrap(),
+        "--mesh",
+        "b.ply",
+        "--name",
+        "x",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("twice"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Two objects trained jointly into one model (`--mesh a --name a --mesh b
+/// --name b`): the components carry their objects' labels, each object is
+/// the best detection of its own label in new renders of it, the other
+/// object's best detection there scores lower, and a pose without a start
+/// needs the mesh's label.
+#[test]
+fn two_meshes_trained_jointly_detect_each_object_under_its_own_label() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-mesh-joint-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let plys = [
+        ("box", coloured_box_ply()),
+        (
+            "bar",
+            coloured_cuboid_ply([24.0, 24.0, 80.0], [[40, 200, 60], [230, 220, 40]]),
+        ),
+    ];
+    for (name, ply) in &plys {
+        std::fs::write(dir.join(format!("{name}.ply")), ply).unwrap();
+    }
+    let bgs = dir.join("bg");
+    write_backgrounds(&bgs, 8);
+    let out = dir.join("models/joint.safetensors");
+    let ply = |n: &str| dir.join(format!("{n}.ply")).to_str().unwrap().to_string();
+    let status = std::process::Command::new(bin)
+        .args([
+            "mesh",
+            "--mesh",
+            &ply("box"),
+            "--name",
+            "box",
+            "--mesh",
+            &ply("bar"),
+            "--name",
+            "bar",
+            "--backgrounds",
+            bgs.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--work",
+            dir.join("work").to_str().unwrap(),
+            "--renders",
+            "60",
+            "--components",
+            "2",
+            "--negatives",
+            "6",
+            "--max-passes",
+            "6",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "{}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let model = Model::load(&out).unwrap();
+    assert_eq!(model.meta.name, "box-bar");
+    let labels: Vec<&str> = model
+        .meta
+        .viewpoints
+        .iter()
+        .map(|v| v.label.as_str())
+        .collect();
+    assert_eq!(labels, ["box", "box", "bar", "bar"]);
+    assert!(model
+        .meta
+        .viewpoints
+        .iter()
+        .all(|v| !v.rotations.is_empty()));
+    let opts = sdhop::pipeline::DetectOptions {
+        threshold: Some(-1e9),
+        max_detections: Some(1),
+        masks: sdhop::pipeline::MaskMode::None,
+        ..Default::default()
+    };
+    let others: Vec<ColorImage> = (0..3)
+        .map(|i| background(640, 480, 700 + i).unwrap())
+        .collect();
+    let mut meshes = Vec::new();
+    for (k, (name, ply)) in plys.iter().enumerate() {
+        let mesh = Mesh::parse(ply.as_bytes()).unwrap();
+        let colours = Mesh::ply_vertex_colours(ply.as_bytes()).unwrap();
+        let test = render_set(
+            &mesh,
+            colours.as_deref(),
+            name,
+            &others,
+            &RenderParams {
+                renders: 10,
+                components: 1,
+                seed: 55 + k as u64,
+                ..RenderParams::default()
+            },
+            &dir.join(format!("test-{name}")),
+            &ProgressBar::hidden(),
+        )
+        .unwrap();
+        let (mut found, mut above) = (0, 0);
+        for s in &test.samples {
+            let img = sdhop::data::load_image(&s.image).unwrap();
+            // The best detection of each label (each label is suppressed
+            // and counted on its own).
+            let best = |label: &str| {
+                let o = sdhop::pipeline::DetectOptions {
+                    label: Some(label.to_string()),
+                    ..opts.clone()
+                };
+                let dets = sdhop::pipeline::detect_image(&img, &[&model], &o)
+                    .unwrap()
+                    .detections;
+                assert_eq!(dets.len(), 1, "{dets:?}");
+                assert_eq!(dets[0].label, label);
+                dets.into_iter().next().unwrap()
+            };
+            let a = s.annotation.as_ref().unwrap();
+            let mine = best(name);
+            let other = best(plys[1 - k].0);
+            let b = &mine.bbox;
+            found += usize::from(box_iou((b.x, b.y, b.width, b.height), a.bbox) >= 0.5);
+            above += usize::from(mine.score > other.score);
+        }
+        eprintln!("{name}: found in {found} of 10, above the other object in {above}");
+        assert!(found >= 4, "{name}: found in {found} of 10 new renders");
+        assert!(
+            above >= 7,
+            "{name}: above the other object in {above} of 10"
+        );
+        meshes.push((mesh, test));
+    }
+    // Pose without a start: the model has two labels, so the request must
+    // name the mesh's; with it, the detection used is of that label.
+    let (mesh, test) = &meshes[0];
+    let img = sdhop::data::load_image(&test.samples[0].image).unwrap();
+    let mut params = PoseParams {
+        intrinsics: Intrinsics {
+            fx: 575.0,
+            fy: 575.0,
+            cx: 160.0,
+            cy: 120.0,
+        },
+        initial_pose: None,
+        label: None,
+        model: Some("box-bar".into()),
+        mask: None,
+        max_iterations: None,
+        start_uncertainty: None,
+    };
+    let err = estimate(&img, mesh, &params, None, &[&model]).unwrap_err();
+    assert!(err.to_string().contains("label"), "{err}");
+    params.label = Some("cup".into());
+    let err = estimate(&img, mesh, &params, None, &[&model]).unwrap_err();
+    assert!(err.to_string().contains("cup"), "{err}");
+    params.label = Some("box".into());
+    let r = estimate(&img, mesh, &params, None, &[&model]).unwrap();
+    assert_eq!(r.detection.unwrap().label, "box");
     let _ = std::fs::remove_dir_all(&dir);
 }

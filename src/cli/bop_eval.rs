@@ -208,10 +208,17 @@ fn evaluate(
             let (mesh, points) = &meshes[&obj];
             let info = &bop.models[&obj];
             let img = read_image(&bop.rgb_path(image), usize::MAX)?;
+            // The model that detects this object (one of several objects'
+            // when trained jointly: then the request names the object).
+            let model = models
+                .iter()
+                .find(|m| m.labels().iter().any(|l| l == label))
+                .ok_or_else(|| Failure::input(format!("no model detects {label}")))?;
             let params = PoseParams {
                 intrinsics: intrinsics(image),
                 initial_pose: None,
-                model: Some(label.to_string()),
+                label: (model.labels().len() > 1).then(|| label.to_string()),
+                model: Some(model.meta.name.clone()),
                 mask: None,
                 max_iterations: None,
                 start_uncertainty: None,

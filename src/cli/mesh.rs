@@ -5,31 +5,43 @@
 
 use super::*;
 use crate::pose::mesh::Mesh;
-use crate::train::mesh::{render_set, RenderParams};
+use crate::train::mesh::{render_set, render_set_with, Occluder, RenderParams};
+use crate::train::train_joint;
 
 #[derive(clap::Args)]
 pub(crate) struct MeshArgs {
     /// The object's mesh (PLY with optional vertex colours, or OBJ), `z`
-    /// up: elevations are measured from its `xy` plane.
+    /// up: elevations are measured from its `xy` plane. Repeat it (with
+    /// as many `--name`s, in the same order) to train several objects
+    /// jointly into one model: their components are trained together, each
+    /// object's renders are negatives of the others' components, and their
+    /// scores are comparable (the paper's compatible components).
+    #[arg(long, required = true)]
+    pub(crate) mesh: Vec<PathBuf>,
+    /// The object's name: the detections' label (and the model's name for
+    /// one object). One per `--mesh`.
+    #[arg(long, required = true)]
+    pub(crate) name: Vec<String>,
+    /// The model's name for several objects (default: their names joined
+    /// by `-`).
     #[arg(long)]
-    pub(crate) mesh: PathBuf,
-    /// The object's name: the detections' label and the model's name.
-    #[arg(long)]
-    pub(crate) name: String,
+    pub(crate) model_name: Option<String>,
     /// Folder of background photographs without the object (JPEG or PNG):
     /// pasted behind and over the renders, and the negatives.
     #[arg(long)]
     pub(crate) backgrounds: PathBuf,
-    /// The weights file to write (default `models/NAME.safetensors`).
+    /// The weights file to write (default `models/MODEL.safetensors`, MODEL
+    /// the model's name).
     #[arg(long)]
     pub(crate) out: Option<PathBuf>,
-    /// Folder for the renders (default `out/mesh/NAME`).
+    /// Folder for the renders (default `out/mesh/MODEL`; one subfolder
+    /// per object when there are several).
     #[arg(long)]
     pub(crate) work: Option<PathBuf>,
-    /// Renders of the object.
+    /// Renders of each object.
     #[arg(long, default_value_t = RenderParams::default().renders)]
     pub(crate) renders: usize,
-    /// Viewpoint components (templates) of the model.
+    /// Viewpoint components (templates) of each object.
     #[arg(long, default_value_t = RenderParams::default().components)]
     pub(crate) components: usize,
     /// Camera elevation range above the mesh's `xy` plane, degrees.
@@ -51,6 +63,15 @@ pub(crate) struct MeshArgs {
     /// photograph (the rest: a smooth colour).
     #[arg(long, default_value_t = RenderParams::default().patch_occluders)]
     pub(crate) patch_occluders: f64,
+    /// Meshes of other objects (PLY/OBJ) that hide part of the renders
+    /// (repeat the flag; an object's own mesh file is skipped among its
+    /// occluders, so one list serves every object).
+    #[arg(long)]
+    pub(crate) occluder_mesh: Vec<PathBuf>,
+    /// Share of the occluders that are renders of the `--occluder-mesh`es
+    /// (the rest as `--patch-occluders` says).
+    #[arg(long, default_value_t = RenderParams::default().mesh_occluders)]
+    pub(crate) mesh_occluders: f64,
     /// Background images used as negatives (the first ones by name).
     #[arg(long, default_value_t = 50)]
     pub(crate) negatives: usize,
@@ -76,15 +97,29 @@ pub(crate) fn parse_pair(text: &str) -> Result<[f64; 2], String> {
 /// Weights of the colour agreement compared by [`choose_colour_weight`].
 const COLOUR_WEIGHTS: [f64; 6] = [0.0, 0.25, 0.5, 1.0, 2.0, 4.0];
 
+/// A box `(x, y, width, height)` in pixels.
+type BoxXywh = (f64, f64, f64, f64);
+
+/// One object of a model trained from meshes.
+struct Object {
+    name: String,
+    file: PathBuf,
+    mesh: Mesh,
+    colours: Option<Vec<[f32; 3]>>,
+}
+
+/// Renders per object of the colour-weight check.
+const CHECK_RENDERS: usize = 60;
+
 /// The weight of the colour agreement (see `DetectParams::colour_weight`)
 /// that localizes best on renders training never saw (another seed) and
 /// on the last background photographs (not among the negatives): the
 /// AUC of recall against false positives per image (0 to 1) of the top
-/// 20 detections per image, as `lmo_detect_eval.py` computes it.
+/// 20 detections per image, as `lmo_detect_eval.py` computes it (a
+/// detection is true only with its object's label).
 fn choose_colour_weight(
     model: &Model,
-    mesh: &Mesh,
-    colours: Option<&[[f32; 3]]>,
+    objects: &[Object],
     backgrounds: &[ColorImage],
     render: &RenderParams,
     dir: &Path,
@@ -93,24 +128,34 @@ fn choose_colour_weight(
     use crate::vision::detect::{detection_masks, DetectParams, Detector};
     use crate::vision::pyramid::FeaturePyramid;
     use crate::vision::shape::{colour_agreement, image_colours};
-    let check = RenderParams {
-        renders: 60,
-        components: 1,
-        seed: render.seed.wrapping_add(1_000_003),
-        ..render.clone()
-    };
-    let set = render_set(
-        mesh,
-        colours,
-        &model.meta.name,
-        backgrounds,
-        &check,
-        dir,
-        &indicatif::ProgressBar::hidden(),
-    )
-    .map_err(Failure::input)?;
+    let per_object = (CHECK_RENDERS / objects.len()).max(20);
+    let mut samples = Vec::new();
+    for (k, o) in objects.iter().enumerate() {
+        let check = RenderParams {
+            renders: per_object,
+            components: 1,
+            seed: render.seed.wrapping_add(1_000_003 + 7919 * k as u64),
+            ..render.clone()
+        };
+        let sub = if objects.len() > 1 {
+            dir.join(&o.name)
+        } else {
+            dir.to_path_buf()
+        };
+        let set = render_set(
+            &o.mesh,
+            o.colours.as_deref(),
+            &o.name,
+            backgrounds,
+            &check,
+            &sub,
+            &indicatif::ProgressBar::hidden(),
+        )
+        .map_err(Failure::input)?;
+        samples.extend(set.samples);
+    }
     let held: Vec<&ColorImage> = backgrounds.iter().rev().take(20).collect();
-    pb.set_length((set.samples.len() + held.len()) as u64);
+    pb.set_length((samples.len() + held.len()) as u64);
     let det = Detector::new(&model.views).map_err(Failure::input)?;
     let params = DetectParams {
         threshold: -1.5,
@@ -119,7 +164,7 @@ fn choose_colour_weight(
     };
     // (score, colour agreement, true) of every detection.
     let mut found: Vec<(f64, f64, bool)> = Vec::new();
-    let mut scan = |img: &ColorImage, truth: Option<(f64, f64, f64, f64)>| -> Result<(), Failure> {
+    let mut scan = |img: &ColorImage, truth: Option<(&String, BoxXywh)>| -> Result<(), Failure> {
         let pyr = FeaturePyramid::build(img, &model.meta.pyramid, &model.meta.segmentation)
             .map_err(Failure::input)?;
         let (dets, _) = det.detect(&pyr, &params).map_err(Failure::input)?;
@@ -134,22 +179,24 @@ fn choose_colour_weight(
                 }
                 None => 0.0,
             };
-            let hit = !matched && truth.is_some_and(|t| box_iou(d.bbox, t) >= 0.5);
+            let label = model.meta.viewpoints.get(d.viewpoint).map(|v| &v.label);
+            let hit = !matched
+                && truth.is_some_and(|(l, t)| label == Some(l) && box_iou(d.bbox, t) >= 0.5);
             matched |= hit;
             found.push((d.score, c, hit));
         }
         pb.inc(1);
         Ok(())
     };
-    for s in &set.samples {
+    for s in &samples {
         let img = crate::data::load_image(&s.image).map_err(Failure::input)?;
-        scan(&img, s.annotation.as_ref().map(|a| a.bbox))?;
+        scan(&img, s.annotation.as_ref().map(|a| (&a.label, a.bbox)))?;
     }
     for img in &held {
         scan(img, None)?;
     }
-    let n_images = (set.samples.len() + held.len()) as f64;
-    let n_pos = set.samples.len().max(1) as f64;
+    let n_images = (samples.len() + held.len()) as f64;
+    let n_pos = samples.len().max(1) as f64;
     let table: Vec<(f64, f64)> = COLOUR_WEIGHTS
         .iter()
         .map(|&w| {
@@ -187,6 +234,7 @@ fn write_coco(
     name: &str,
     samples: &[Sample],
     poses: &[crate::pose::geometry::Pose],
+    first_view: usize,
 ) -> Result<(), Failure> {
     let mut images = Vec::new();
     let mut annotations = Vec::new();
@@ -204,7 +252,7 @@ fn write_coco(
         let (x, y, w, h) = a.bbox;
         annotations.push(serde_json::json!({
             "id": i + 1, "image_id": i + 1, "category_id": 1,
-            "bbox": [x, y, w, h], "viewpoint": a.viewpoint,
+            "bbox": [x, y, w, h], "viewpoint": a.viewpoint - first_view,
             "segmentation": a.visible.to_rle(),
             "pose": {"rotation": pose.rotation_rows(), "translation": [
                 pose.translation.x, pose.translation.y, pose.translation.z]},
@@ -286,16 +334,60 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         occluded_share: args.occluded_share,
         occlusion: args.occlusion,
         patch_occluders: args.patch_occluders,
+        mesh_occluders: args.mesh_occluders,
         seed: args.render_seed,
         ..RenderParams::default()
     };
     render.validate().map_err(Failure::input)?;
-    let bytes = std::fs::read(&args.mesh)
-        .map_err(|e| Failure::io(format!("{}: {e}", args.mesh.display())))?;
-    let mesh =
-        Mesh::parse(&bytes).map_err(|e| Failure::input(format!("{}: {e}", args.mesh.display())))?;
-    let colours = Mesh::ply_vertex_colours(&bytes)
-        .map_err(|e| Failure::input(format!("{}: {e}", args.mesh.display())))?;
+    if args.mesh.len() != args.name.len() {
+        return Err(Failure::input(format!(
+            "{} --mesh but {} --name: give one name per mesh, in the same order",
+            args.mesh.len(),
+            args.name.len()
+        )));
+    }
+    let mut seen = std::collections::HashSet::new();
+    if let Some(dup) = args.name.iter().find(|n| !seen.insert(n.as_str())) {
+        return Err(Failure::input(format!("--name {dup} given twice")));
+    }
+    let model_name = match (&args.model_name, &args.name[..]) {
+        (Some(m), _) => m.clone(),
+        (None, [one]) => one.clone(),
+        (None, names) => names.join("-"),
+    };
+    let objects: Vec<Object> = args
+        .mesh
+        .iter()
+        .zip(&args.name)
+        .map(|(file, name)| {
+            let bytes =
+                std::fs::read(file).map_err(|e| Failure::io(format!("{}: {e}", file.display())))?;
+            let mesh = Mesh::parse(&bytes)
+                .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+            let colours = Mesh::ply_vertex_colours(&bytes)
+                .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+            Ok(Object {
+                name: name.clone(),
+                file: file.clone(),
+                mesh,
+                colours,
+            })
+        })
+        .collect::<Result<_, Failure>>()?;
+    let occluders: Vec<(PathBuf, Occluder)> = args
+        .occluder_mesh
+        .iter()
+        .map(|file| {
+            let bytes =
+                std::fs::read(file).map_err(|e| Failure::io(format!("{}: {e}", file.display())))?;
+            let mesh = Mesh::parse(&bytes)
+                .and_then(|m| m.validate().map(|()| m))
+                .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+            let colours = Mesh::ply_vertex_colours(&bytes)
+                .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+            Ok((file.clone(), Occluder { mesh, colours }))
+        })
+        .collect::<Result<_, Failure>>()?;
     let files = image_files(&args.backgrounds)?;
     let backgrounds: Vec<ColorImage> = files
         .iter()
@@ -304,34 +396,70 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let work = args
         .work
         .clone()
-        .unwrap_or_else(|| PathBuf::from("out/mesh").join(&args.name));
-    let pb = progress_bar(render.renders as u64, &format!("{}: rendering", args.name));
-    let set = render_set(
-        &mesh,
-        colours.as_deref(),
-        &args.name,
-        &backgrounds,
-        &render,
-        &work,
-        &pb,
-    )
-    .map_err(Failure::input)?;
-    pb.finish_and_clear();
-    let render_s = start.elapsed().as_secs_f64();
-    eprintln!(
-        "{}: {} renders ({} components, {}) in {:.0} s -> {}",
-        args.name,
-        set.samples.len(),
-        set.directions.len(),
-        if colours.is_some() {
-            "vertex colours"
+        .unwrap_or_else(|| PathBuf::from("out/mesh").join(&model_name));
+    // Every object's renders, their components numbered after the
+    // previous objects'.
+    let mut samples: Vec<Sample> = Vec::new();
+    let mut directions = Vec::new();
+    let mut rotations = Vec::new();
+    for (k, o) in objects.iter().enumerate() {
+        let sub = if objects.len() > 1 {
+            work.join(&o.name)
         } else {
-            "no vertex colours: grey"
-        },
-        render_s,
-        work.display()
-    );
-    write_coco(&work, &args.name, &set.samples, &set.poses)?;
+            work.clone()
+        };
+        let first_view = directions.len();
+        let pb = progress_bar(render.renders as u64, &format!("{}: rendering", o.name));
+        let seeded = RenderParams {
+            seed: render.seed.wrapping_add(104_729 * k as u64),
+            ..render.clone()
+        };
+        let same = |f: &PathBuf| match (f.canonicalize(), o.file.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => *f == o.file,
+        };
+        let mine: Vec<Occluder> = occluders
+            .iter()
+            .filter(|(f, _)| !same(f))
+            .map(|(_, occ)| Occluder {
+                mesh: occ.mesh.clone(),
+                colours: occ.colours.clone(),
+            })
+            .collect();
+        let mut set = render_set_with(
+            &o.mesh,
+            o.colours.as_deref(),
+            &o.name,
+            &backgrounds,
+            &mine,
+            &seeded,
+            &sub,
+            &pb,
+        )
+        .map_err(Failure::input)?;
+        pb.finish_and_clear();
+        for a in set.samples.iter_mut().filter_map(|s| s.annotation.as_mut()) {
+            a.viewpoint += first_view;
+        }
+        eprintln!(
+            "{}: {} renders ({} components, {}) in {:.0} s -> {}",
+            o.name,
+            set.samples.len(),
+            set.directions.len(),
+            if o.colours.is_some() {
+                "vertex colours"
+            } else {
+                "no vertex colours: grey"
+            },
+            start.elapsed().as_secs_f64(),
+            sub.display()
+        );
+        write_coco(&sub, &o.name, &set.samples, &set.poses, first_view)?;
+        directions.extend(set.directions);
+        rotations.extend(set.rotations);
+        samples.extend(set.samples);
+    }
+    let render_s = start.elapsed().as_secs_f64();
     // The negatives as they are (downsized copies at the renders' size
     // found less: LM-O ape AUC 0.067 against 0.123).
     let negatives: Vec<Sample> = files
@@ -346,31 +474,32 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             annotation: None,
         })
         .collect();
-    let refs: Vec<&Sample> = set.samples.iter().chain(&negatives).collect();
+    let refs: Vec<&Sample> = samples.iter().chain(&negatives).collect();
     let cache = PyramidCache::default();
-    let pb = progress_bar(0, &format!("{}: training", args.name));
+    let pb = progress_bar(0, &format!("{model_name}: training"));
+    let labels: Vec<&str> = args.name.iter().map(String::as_str).collect();
     let (mut model, report) =
-        train_model(&args.name, &refs, &cache, &params, &pb).map_err(Failure::input)?;
+        train_joint(&model_name, &labels, &refs, &cache, &params, &pb).map_err(Failure::input)?;
     pb.finish_and_clear();
+    drop(cache);
     eprintln!(
-        "{}: full-search violations {:?}, min-cuts {:?}",
-        args.name, report.full_violation, report.full_min_cuts
+        "{model_name}: full-search violations {:?}, min-cuts {:?}",
+        report.full_violation, report.full_min_cuts
     );
     for ((view, dir), rots) in model
         .meta
         .viewpoints
         .iter_mut()
-        .zip(&set.directions)
-        .zip(&set.rotations)
+        .zip(&directions)
+        .zip(&rotations)
     {
         view.direction = Some(*dir);
         view.rotations = rots.clone();
     }
-    let pb = progress_bar(0, &format!("{}: colour weight", args.name));
+    let pb = progress_bar(0, &format!("{model_name}: colour weight"));
     let (weight, table) = choose_colour_weight(
         &model,
-        &mesh,
-        colours.as_deref(),
+        &objects,
         &backgrounds,
         &render,
         &work.join("check"),
@@ -378,8 +507,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     )?;
     pb.finish_and_clear();
     eprintln!(
-        "{}: colour weight {weight} (AUC on held-out renders per weight: {})",
-        args.name,
+        "{model_name}: colour weight {weight} (AUC on held-out renders per weight: {})",
         table
             .iter()
             .map(|(w, a)| format!("{w}: {a:.3}"))
@@ -392,11 +520,25 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             "colour_weight".into(),
             serde_json::json!({"chosen": weight, "auc_per_weight": table}),
         );
+        let meshes: Vec<serde_json::Value> = objects
+            .iter()
+            .map(|o| {
+                serde_json::json!({
+                    "name": o.name,
+                    "file": o.file.display().to_string(),
+                    "vertex_colours": o.colours.is_some(),
+                })
+            })
+            .collect();
         obj.insert(
             "mesh".into(),
             serde_json::json!({
-                "file": args.mesh.display().to_string(),
-                "vertex_colours": colours.is_some(),
+                "objects": meshes,
+                "occluder_meshes": args
+                    .occluder_mesh
+                    .iter()
+                    .map(|f| f.display().to_string())
+                    .collect::<Vec<_>>(),
                 "render": render,
                 "backgrounds": args.backgrounds.display().to_string(),
                 "negatives": negatives.len(),
@@ -406,7 +548,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let out = args
         .out
         .clone()
-        .unwrap_or_else(|| PathBuf::from("models").join(format!("{}.safetensors", args.name)));
+        .unwrap_or_else(|| PathBuf::from("models").join(format!("{model_name}.safetensors")));
     if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?;
     }
@@ -415,13 +557,12 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         .meta
         .viewpoints
         .iter()
-        .map(|v| format!("{}x{}", v.rows, v.cols))
+        .map(|v| format!("{} {}x{}", v.label, v.rows, v.cols))
         .collect();
     println!(
-        "{}: {} components ({}), {} positives, {} negatives, {} passes, converged {}, render {:.0} s, train {:.0} s, total {:.0} s -> {}",
-        args.name,
+        "{model_name}: {} components ({}), {} positives, {} negatives, {} passes, converged {}, render {:.0} s, train {:.0} s, total {:.0} s -> {}",
         views.len(),
-        views.join(" "),
+        views.join(", "),
         report.positives,
         report.negatives,
         report.passes,

@@ -348,6 +348,7 @@ pub fn run(
             let params = PoseParams {
                 intrinsics,
                 initial_pose: Some(PoseJson::from(&case.start)),
+                label: None,
                 model: None,
                 mask: Some(source),
                 max_iterations: None,

@@ -296,6 +296,7 @@ pub async fn detect(
             region: None,
             deadline: Deadline::NONE,
             transfer: query.transfer,
+            label: None,
         },
     };
     let resp = state.infer.detect(permit, task, deadline).await?;

@@ -53,7 +53,10 @@ impl Work {
             Work::Detect(t, _) => Some((
                 &t.image,
                 t.models.iter().map(|m| m.as_ref()).collect(),
-                DetectOptions { deadline, ..t.opts },
+                DetectOptions {
+                    deadline,
+                    ..t.opts.clone()
+                },
             )),
             Work::Pose(t, _) => t.model.as_ref().map(|m| {
                 (

@@ -58,6 +58,11 @@ pub struct PoseParams {
     /// The detector model whose mask `mask: "detect"` uses.
     #[serde(default)]
     pub model: Option<String>,
+    /// The mesh's object among the labels of `model` when it detects
+    /// several objects (trained jointly): only its detections are used.
+    /// Needed without `initial_pose` when `model` has several labels.
+    #[serde(default)]
+    pub label: Option<String>,
     /// Default: `"provided"` when a mask image is sent, else `"none"`.
     #[serde(default)]
     pub mask: Option<MaskSource>,
@@ -181,6 +186,8 @@ pub const NO_START_SIGMA_DEPTH: f64 = 0.1;
 pub struct Detected {
     pub response: DetectResponse,
     pub view_rotations: Vec<Vec<[f64; 4]>>,
+    /// The model's labels (each once, in component order).
+    pub labels: Vec<String>,
 }
 
 impl Detected {
@@ -214,6 +221,7 @@ impl Detected {
                 .iter()
                 .map(|v| v.rotations.clone())
                 .collect(),
+            labels: model.labels(),
         }
     }
 }
@@ -238,6 +246,20 @@ pub struct Checked {
 }
 
 impl PoseParams {
+    /// The requested `label`, checked against the model's `labels`
+    /// (`None`: no label asked).
+    pub fn label_of(&self, labels: &[String]) -> Result<Option<&str>, PoseError> {
+        match &self.label {
+            None => Ok(None),
+            Some(l) if labels.contains(l) => Ok(Some(l.as_str())),
+            Some(l) => Err(PoseError::InvalidParameter(format!(
+                "label {l} is not among the labels of model {} ({})",
+                self.model.as_deref().unwrap_or_default(),
+                labels.join(", ")
+            ))),
+        }
+    }
+
     /// The detection options of `mask: "detect"` for this request (see
     /// [`detect_options`]): around the mesh's box at the initial pose,
     /// anywhere when the initial pose is unusable (the request then fails
@@ -250,6 +272,7 @@ impl PoseParams {
             return DetectOptions {
                 threshold: Some(NO_START_THRESHOLD),
                 max_detections: Some(NO_START_DETECTIONS),
+                label: self.label.clone(),
                 masks: MaskMode::Refined,
                 ..DetectOptions::default()
             };
@@ -257,7 +280,10 @@ impl PoseParams {
         let expected = Pose::from_client(start.rotation, start.translation)
             .ok()
             .and_then(|p| projected_box(&mesh.vertices, &self.intrinsics, &p));
-        detect_options(expected)
+        DetectOptions {
+            label: self.label.clone(),
+            ..detect_options(expected)
+        }
     }
 
     /// Checks the parameters against the image's size and the mask the
@@ -445,11 +471,13 @@ where
         MaskSource::None => (None, MaskUsed::None, None),
         MaskSource::Provided => (mask, MaskUsed::Provided, None),
         MaskSource::Detect => {
-            let det = detect(name)?
+            let found = detect(name)?;
+            let label = params.label_of(&found.labels)?;
+            let det = found
                 .response
                 .detections
                 .into_iter()
-                .next()
+                .find(|d| label.is_none_or(|l| d.label == l))
                 .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
             let m = det
                 .mask
@@ -521,6 +549,13 @@ fn from_detections(
             "model {name} carries no training views (it was not trained from a mesh by sdhop-train mesh), so it cannot give start poses: send initial_pose"
         )));
     }
+    let label = params.label_of(&found.labels)?;
+    if found.labels.len() > 1 && label.is_none() {
+        return Err(PoseError::InvalidParameter(format!(
+            "model {name} detects several objects ({}): name the mesh's object in label",
+            found.labels.join(", ")
+        )));
+    }
     let mut best: Option<(PoseResult, DetectionJson, Pose)> = None;
     let mut refined = 0usize;
     let mut too_few: Option<PoseError> = None;
@@ -528,6 +563,7 @@ fn from_detections(
         .response
         .detections
         .into_iter()
+        .filter(|d| label.is_none_or(|l| d.label == l))
         .take(NO_START_DETECTIONS)
     {
         // An empty mask has nothing to fit: the box alone then.
@@ -630,6 +666,7 @@ mod tests {
                 cx: 320.0,
                 cy: 240.0,
             },
+            label: None,
             initial_pose: Some(PoseJson {
                 rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
                 translation: t,

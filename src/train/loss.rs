@@ -106,15 +106,25 @@ pub struct TruthLoss<'a> {
     pub kind: LossKind,
     /// Weight of the visibility term (1: eq. (3) as the paper writes it).
     pub seg_weight: f64,
+    /// The viewpoint components of the truth's object in a model of several
+    /// objects trained jointly (`None`: every component): a box of another
+    /// object's component is a false positive wherever it lies (loss 1).
+    pub views: Option<&'a [bool]>,
 }
 
 impl TruthLoss<'_> {
     /// The box part of the loss at a box and the weight of each disagreeing
     /// cell: `Delta = constant + weight * #disagreements`.
-    fn terms(&self, grid: &CellGrid) -> (f64, f64) {
+    fn terms(&self, view: usize, grid: &CellGrid) -> (f64, f64) {
         let Some(t) = &self.truth else {
             return (1.0, 0.0);
         };
+        if self
+            .views
+            .is_some_and(|v| !v.get(view).copied().unwrap_or(false))
+        {
+            return (1.0, 0.0);
+        }
         let n = (grid.rows * grid.cols) as f64;
         let iou = box_iou(t.bbox, grid.pixel_box());
         match self.kind {
@@ -129,10 +139,11 @@ impl TruthLoss<'_> {
         }
     }
 
-    /// The loss of labelling `v` of the box at `grid`, computed directly.
-    pub fn loss(&self, grid: &CellGrid, v: &[bool]) -> f64 {
-        let (c, w) = self.terms(grid);
-        let Some(t) = &self.truth else {
+    /// The loss of labelling `v` of the box at `grid` of component `view`,
+    /// computed directly.
+    pub fn loss(&self, view: usize, grid: &CellGrid, v: &[bool]) -> f64 {
+        let (c, w) = self.terms(view, grid);
+        let Some(t) = self.truth.as_ref().filter(|_| w > 0.0) else {
             return c;
         };
         let mut truth = Vec::new();
@@ -147,8 +158,8 @@ impl LossAugment for TruthLoss<'_> {
         self.seg_weight.max(1.0)
     }
 
-    fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem) {
-        let (c, w) = self.terms(grid);
+    fn augment(&self, view: usize, grid: &CellGrid, problem: &mut BoxProblem) {
+        let (c, w) = self.terms(view, grid);
         problem.constant -= c;
         if w > 0.0 {
             if let Some(t) = &self.truth {
@@ -237,20 +248,21 @@ mod tests {
                 }),
                 kind: LossKind::SdHop,
                 seg_weight: 1.0,
+                views: None,
             };
-            assert_eq!(at(&g).loss(&g, &tv), 0.0);
+            assert_eq!(at(&g).loss(0, &g, &tv), 0.0);
             let far = grid(g.cell_x + 6, g.cell_y, 4, 5, 1.0);
             let v: Vec<bool> = (0..20).map(|_| rng.next_f64() < 0.5).collect();
-            assert_eq!(at(&g).loss(&far, &v), 1.0);
+            assert_eq!(at(&g).loss(0, &far, &v), 1.0);
             // Same grid, shifted: symmetric when both sides use their own
             // truth labels as the labelling.
             let other = grid(g.cell_x + 1, g.cell_y, 4, 5, 1.0);
             let mut ov = Vec::new();
             cell_truth(&other, &im, &mut ov);
-            let d1 = at(&g).loss(&other, &ov);
-            let d2 = at(&other).loss(&g, &tv);
+            let d1 = at(&g).loss(0, &other, &ov);
+            let d2 = at(&other).loss(0, &g, &tv);
             assert!((d1 - d2).abs() < 1e-12, "{d1} vs {d2}");
-            let d = at(&g).loss(&other, &v);
+            let d = at(&g).loss(0, &other, &v);
             assert!((0.0..=1.0).contains(&d));
         }
     }
@@ -290,7 +302,12 @@ mod tests {
                 }),
                 kind,
                 seg_weight: 1.0,
+                // Component 1 is another object's in a joint model.
+                views: Some(&[true, false]),
             };
+            // The truth's own component, then another object's: loss 1
+            // for every labelling, even on the truth's box.
+            let view = case / 3 % 2;
             let n = rows * cols;
             let mut p = BoxProblem::new(rows, cols, vec![0.0, 0.5, 0.7, 0.5, 0.0]);
             for i in 0..n {
@@ -301,10 +318,14 @@ mod tests {
             p.n_cliques = 1;
             p.pairwise = 0.2;
             let mut aug = p.clone();
-            loss.augment(&g, &mut aug);
+            loss.augment(view, &g, &mut aug);
             for bits in 0..1u32 << n {
                 let v: Vec<bool> = (0..n).map(|i| bits >> i & 1 == 1).collect();
-                let direct = p.energy(&v) - loss.loss(&g, &v);
+                let delta = loss.loss(view, &g, &v);
+                if view == 1 {
+                    assert_eq!(delta, 1.0);
+                }
+                let direct = p.energy(&v) - delta;
                 assert!((aug.energy(&v) - direct).abs() < 1e-12);
             }
         }

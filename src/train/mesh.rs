@@ -47,6 +47,9 @@ pub struct RenderParams {
     /// background is occluder: with patches only, LM-O duck scored AUC
     /// 0.000 (every 4th photograph), with smooth colours only 0.148.
     pub patch_occluders: f64,
+    /// Share of the occluders that are renders of the occluder meshes
+    /// (other objects), when any are given (see [`render_set_with`]).
+    pub mesh_occluders: f64,
     /// Render size in pixels (the object and some context).
     pub width: usize,
     pub height: usize,
@@ -66,6 +69,7 @@ impl Default for RenderParams {
             occluded_share: 0.3,
             occlusion: [0.1, 0.6],
             patch_occluders: 0.0,
+            mesh_occluders: 0.5,
             width: 320,
             height: 240,
             focal: 575.0,
@@ -99,9 +103,10 @@ impl RenderParams {
             || !(0.0..=0.95).contains(&self.occlusion[0])
             || !(self.occlusion[0]..=0.95).contains(&self.occlusion[1])
             || !(0.0..=1.0).contains(&self.patch_occluders)
+            || !(0.0..=1.0).contains(&self.mesh_occluders)
         {
             return bad(
-                "occlusion shares must lie in 0..0.95, MIN <= MAX, patch_occluders in 0..1",
+                "occlusion shares must lie in 0..0.95, MIN <= MAX, patch_occluders and mesh_occluders in 0..1",
             );
         }
         if !(self.focal > 0.0 && self.focal.is_finite()) {
@@ -323,6 +328,16 @@ fn occluder_shape(
     m
 }
 
+/// A render's colours per pixel (zero where nothing is drawn) and its
+/// silhouette.
+type Drawn = (Vec<[f32; 3]>, Mask);
+
+/// Another object's mesh that hides part of the renders.
+pub struct Occluder {
+    pub mesh: Mesh,
+    pub colours: Option<Vec<[f32; 3]>>,
+}
+
 /// Renders the training set of `mesh` into `dir` (JPEG files) over
 /// `backgrounds`, advancing `progress` per render.
 pub fn render_set(
@@ -330,6 +345,87 @@ pub fn render_set(
     colours: Option<&[[f32; 3]]>,
     name: &str,
     backgrounds: &[ColorImage],
+    params: &RenderParams,
+    dir: &Path,
+    progress: &ProgressBar,
+) -> Result<MeshSet, TrainError> {
+    render_set_with(mesh, colours, name, backgrounds, &[], params, dir, progress)
+}
+
+/// A render of `occ` at a random rotation, its size `size` pixels, placed
+/// so that it hides about `occlude` of the object's silhouette `full`
+/// (the best of a few placements): its colours and silhouette, `None`
+/// where nothing could be drawn.
+#[allow(clippy::too_many_arguments)]
+fn mesh_occluder(
+    occ: &Occluder,
+    full: &Mask,
+    occlude: f64,
+    size: f64,
+    k: &Intrinsics,
+    lighting: &Lighting,
+    rng: &mut SplitMix64,
+) -> Result<Option<Drawn>, TrainError> {
+    let (w, h) = (full.width, full.height);
+    let Some((bx0, by0, bx1, by1)) = full.tight_box() else {
+        return Ok(None);
+    };
+    let (lo, hi) = occ.mesh.vertices.iter().fold(
+        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
+        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
+    );
+    let centre = (lo + hi) / 2.0;
+    let diagonal = (hi - lo).norm().max(1e-9);
+    let dir = direction(
+        rng.range_f64(0.0, std::f64::consts::TAU),
+        rng.range_f64(-1.0, 1.0).asin(),
+    );
+    let rotation = look_rotation(&dir, rng.range_f64(-180.0, 180.0).to_radians());
+    let occ_size = size * rng.range_f64(0.6, 1.4);
+    let z = k.fx * 0.7 * diagonal / occ_size;
+    let (cx, cy) = ((bx0 + bx1) as f64 / 2.0, (by0 + by1) as f64 / 2.0);
+    let reach = ((bx1 - bx0).max(by1 - by0) as f64 + occ_size) / 2.0;
+    let area = full.area().max(1) as f64;
+    let mut best: Option<(f64, Vec<[f32; 3]>, Mask)> = None;
+    for _ in 0..6 {
+        // From a random side, as far in as the share to hide asks.
+        let angle = rng.range_f64(0.0, std::f64::consts::TAU);
+        let d = reach * (1.0 - 1.6 * occlude).clamp(0.0, 1.0) * rng.range_f64(0.8, 1.2);
+        let (u, v) = (cx + d * angle.cos(), cy + d * angle.sin());
+        let at = Vector3::new((u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z);
+        let pose = Pose {
+            rotation,
+            translation: at - rotation * centre,
+        };
+        let (colours, sil) =
+            render_colours(&occ.mesh, occ.colours.as_deref(), k, &pose, w, h, lighting)?;
+        let hidden = full
+            .data
+            .iter()
+            .zip(&sil.data)
+            .filter(|(a, b)| **a != 0 && **b != 0)
+            .count() as f64
+            / area;
+        let miss = (hidden - occlude).abs();
+        if best.as_ref().is_none_or(|b| miss < b.0) {
+            best = Some((miss, colours, sil));
+        }
+        if miss < 0.1 {
+            break;
+        }
+    }
+    Ok(best.map(|(_, c, m)| (c, m)))
+}
+
+/// [`render_set`] where some occluders are renders of other objects'
+/// meshes (`occluders`, see [`RenderParams::mesh_occluders`]).
+#[allow(clippy::too_many_arguments)]
+pub fn render_set_with(
+    mesh: &Mesh,
+    colours: Option<&[[f32; 3]]>,
+    name: &str,
+    backgrounds: &[ColorImage],
+    occluders: &[Occluder],
     params: &RenderParams,
     dir: &Path,
     progress: &ProgressBar,
@@ -426,7 +522,30 @@ pub fn render_set(
             }
         }
         let mut visible = full.clone();
-        if rng.next_f64() < params.occluded_share {
+        let occluded_now = rng.next_f64() < params.occluded_share;
+        let by_mesh =
+            occluded_now && !occluders.is_empty() && rng.next_f64() < params.mesh_occluders;
+        if by_mesh {
+            let occlude = rng.range_f64(params.occlusion[0], params.occlusion[1]);
+            let occ = &occluders[rng.range_usize(0, occluders.len())];
+            let light = Lighting {
+                gain: {
+                    let g = rng.range_f64(0.7, 1.25);
+                    [g, g, g]
+                },
+                ..lighting
+            };
+            if let Some((cols, sil)) =
+                mesh_occluder(occ, &full, occlude, size, &k, &light, &mut rng)?
+            {
+                for (p, c) in cols.iter().enumerate() {
+                    if sil.data[p] != 0 {
+                        data[p * 3..p * 3 + 3].copy_from_slice(c);
+                        visible.data[p] = 0;
+                    }
+                }
+            }
+        } else if occluded_now {
             let occlude = rng.range_f64(params.occlusion[0], params.occlusion[1]);
             let shape = occluder_shape((bx0, by0, bx1, by1), occlude, w, h, &mut rng);
             let other = &backgrounds[rng.range_usize(0, backgrounds.len())];

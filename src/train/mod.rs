@@ -434,6 +434,9 @@ struct GroundTruth {
     cells: Vec<bool>,
     /// The joint feature of the ground truth in training coordinates.
     psi: Vec<f64>,
+    /// The components of the truth's object in a joint model (`None`: a
+    /// model of one object, every component is its).
+    views: Option<Arc<Vec<bool>>>,
 }
 
 /// What one cutting-plane round found.
@@ -493,18 +496,34 @@ pub fn train_model(
     params: &TrainParams,
     progress: &ProgressBar,
 ) -> Result<(Model, TrainReport), TrainError> {
+    train_joint(label, &[label], samples, cache, params, progress)
+}
+
+/// Trains one model named `name` for several objects jointly (the paper's
+/// compatible components): the samples annotated with any of `labels` are
+/// the positives, their annotations' viewpoints index the model's
+/// components across all objects (each component belongs to one object),
+/// and a box of another object's component is a false positive on every
+/// image (loss 1), so the objects' scores are trained to be comparable.
+/// Samples without an annotation of `labels` are negatives.
+pub fn train_joint(
+    name: &str,
+    labels: &[&str],
+    samples: &[&Sample],
+    cache: &PyramidCache,
+    params: &TrainParams,
+    progress: &ProgressBar,
+) -> Result<(Model, TrainReport), TrainError> {
     let start = Instant::now();
     let mut report = TrainReport::default();
-    let positives: Vec<&Sample> = samples
-        .iter()
-        .copied()
-        .filter(|s| s.annotation.as_ref().is_some_and(|a| a.label == label))
-        .collect();
-    let negatives: Vec<&Sample> = samples
-        .iter()
-        .copied()
-        .filter(|s| s.annotation.as_ref().is_none_or(|a| a.label != label))
-        .collect();
+    let ours = |s: &Sample| -> bool {
+        s.annotation
+            .as_ref()
+            .is_some_and(|a| labels.contains(&a.label.as_str()))
+    };
+    let positives: Vec<&Sample> = samples.iter().copied().filter(|s| ours(s)).collect();
+    let negatives: Vec<&Sample> = samples.iter().copied().filter(|s| !ours(s)).collect();
+    let label = labels.join("+");
     if positives.is_empty() {
         return Err(TrainError::NoData(format!("no positive image of {label}")));
     }
@@ -513,6 +532,31 @@ pub fn train_model(
         .filter_map(|s| s.annotation.as_ref().map(|a| a.viewpoint + 1))
         .max()
         .unwrap_or(1);
+    // Each component's object: the label of its annotations (one object).
+    let mut view_labels: Vec<Option<&str>> = vec![None; n_views];
+    for a in positives.iter().filter_map(|s| s.annotation.as_ref()) {
+        match view_labels[a.viewpoint] {
+            None => view_labels[a.viewpoint] = Some(a.label.as_str()),
+            Some(l) if l != a.label => {
+                return Err(TrainError::NoData(format!(
+                    "viewpoint {} is annotated as {l} and as {}: a component belongs to one object",
+                    a.viewpoint, a.label
+                )))
+            }
+            Some(_) => {}
+        }
+    }
+    let view_labels: Vec<String> = view_labels
+        .iter()
+        .enumerate()
+        .map(|(v, l)| {
+            l.map(str::to_string).ok_or_else(|| {
+                TrainError::NoData(format!("viewpoint {v} of {label}: no positive image"))
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let views_of =
+        |l: &str| -> Arc<Vec<bool>> { Arc::new(view_labels.iter().map(|v| v == l).collect()) };
     let shapes: Vec<(usize, usize)> = (0..n_views)
         .map(|v| template_shape(&positives, v, params))
         .collect::<Result<_, _>>()?;
@@ -536,7 +580,7 @@ pub fn train_model(
             .get(&s.image)
             .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", s.image.display())))?;
         let locs = det0.locations(&pyr, params.max_truncation);
-        let ann = s.annotation.as_ref().filter(|a| a.label == label);
+        let ann = s.annotation.as_ref().filter(|_| ours(s));
         let truth = match ann {
             Some(a) => {
                 let best = locs
@@ -581,6 +625,7 @@ pub fn train_model(
                     bbox: grid.pixel_box(),
                     cells,
                     psi,
+                    views: (labels.len() > 1).then(|| views_of(&a.label)),
                 })
             }
             None => None,
@@ -699,7 +744,7 @@ pub fn train_model(
     let views = layout.to_views(&w);
     let meta = ModelMeta {
         format_version: FORMAT_VERSION,
-        name: label.to_string(),
+        name: name.to_string(),
         cell_size: CELL_SIZE,
         hop_k: params.k,
         pairwise: params.pair_mode,
@@ -712,8 +757,9 @@ pub fn train_model(
         },
         viewpoints: shapes
             .iter()
-            .map(|&(rows, cols)| ViewMeta {
-                label: label.to_string(),
+            .zip(&view_labels)
+            .map(|(&(rows, cols), label)| ViewMeta {
+                label: label.clone(),
                 rows,
                 cols,
                 direction: None,
@@ -847,6 +893,10 @@ fn search(
                 } else {
                     0.0
                 },
+                views: ex
+                    .truth
+                    .as_ref()
+                    .and_then(|t| t.views.as_deref().map(Vec::as_slice)),
             };
             // The empty output: loss 1 on a positive, 0 on a negative.
             let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };
@@ -879,7 +929,7 @@ fn search(
                         params.pairwise,
                     );
                     let grid = det.grid(&ex.pyr, &b.location);
-                    (aug.loss(&grid, &b.cells), Some(b.location))
+                    (aug.loss(b.location.view, &grid, &b.cells), Some(b.location))
                 }
                 None => (floor, None),
             };

@@ -18,7 +18,8 @@ impl Detector<'_> {
     ) -> Option<Solved> {
         self.fill_problem(pyr, &cand.location(), s, None);
         if let Some(a) = aug {
-            a.augment(&self.grid(pyr, &cand.location()), &mut s.problem);
+            let location = cand.location();
+            a.augment(location.view, &self.grid(pyr, &location), &mut s.problem);
         }
         let p = &mut s.problem;
         if prune {

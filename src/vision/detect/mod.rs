@@ -224,8 +224,9 @@ impl Candidate {
 pub trait LossAugment: Sync {
     /// An upper bound on the loss of any output (subtracted from bounds).
     fn max_loss(&self) -> f64;
-    /// Subtracts the loss of the box at `grid` from `problem`'s energy.
-    fn augment(&self, grid: &CellGrid, problem: &mut BoxProblem);
+    /// Subtracts the loss of the box at `grid` of viewpoint component
+    /// `view` from `problem`'s energy.
+    fn augment(&self, view: usize, grid: &CellGrid, problem: &mut BoxProblem);
 }
 
 /// The output of loss-augmented inference at one location.
@@ -266,6 +267,9 @@ pub struct Detector<'a> {
     views: Vec<View<'a>>,
     /// Responses transferred from other objects' detections.
     transfer: Option<&'a Transfer>,
+    /// The group (object) of each viewpoint: non-maximum suppression and
+    /// `max_detections` apply within a group (all 0: one object).
+    groups: Vec<usize>,
 }
 
 impl<'a> Detector<'a> {
@@ -285,10 +289,32 @@ impl<'a> Detector<'a> {
                 Ok(View { w, hop_min, w_hop })
             })
             .collect::<Result<Vec<_>, VisionError>>()?;
+        let groups = vec![0; views.len()];
         Ok(Self {
             views,
             transfer: None,
+            groups,
         })
+    }
+
+    /// The detector with its viewpoints in groups (`groups[v]` of viewpoint
+    /// `v`, e.g. the objects of a model trained jointly): each group gets
+    /// its own non-maximum suppression and `max_detections`, as separate
+    /// models would, and the pruning stays exact per group.
+    pub fn with_groups(mut self, groups: Vec<usize>) -> Result<Self, VisionError> {
+        if groups.len() != self.views.len() {
+            return Err(VisionError::InvalidParameter(format!(
+                "{} groups for {} viewpoints",
+                groups.len(),
+                self.views.len()
+            )));
+        }
+        self.groups = groups;
+        Ok(self)
+    }
+
+    fn n_groups(&self) -> usize {
+        self.groups.iter().max().map_or(1, |g| g + 1)
     }
 
     /// The detector with the occlusion responses of the cells that
@@ -508,7 +534,9 @@ impl<'a> Detector<'a> {
         let single = params.max_detections == 1 && params.prune;
         let ranked = params.prune && budget.is_none();
         let mut solved: Vec<Solved> = Vec::new();
-        let mut best = cut;
+        // The cut-off of each group (a location can only be reported among
+        // its own group's detections).
+        let mut best = vec![cut; self.n_groups()];
         let chunk = if single {
             64
         } else if ranked {
@@ -517,16 +545,18 @@ impl<'a> Detector<'a> {
             cands.len().max(1)
         };
         for block in cands.chunks(chunk) {
-            if (single || ranked) && block[0].bound - margin(block[0].bound) > best {
+            let worst = best.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            if (single || ranked) && block[0].bound - margin(block[0].bound) > worst {
                 break;
             }
             if budget.is_some_and(|b| stats.min_cuts >= b) || params.deadline.passed() {
                 break;
             }
-            let cutoff = best;
+            let cutoff = &best;
             let out: Vec<Option<Solved>> = block
                 .par_iter()
                 .map_init(Scratch::default, |s, c| {
+                    let cutoff = cutoff[self.groups[c.view]];
                     if (single || ranked) && c.bound - margin(c.bound) > cutoff {
                         return None;
                     }
@@ -537,14 +567,18 @@ impl<'a> Detector<'a> {
                 stats.min_cuts += 1;
                 if r.energy <= cut {
                     if single {
-                        best = best.min(r.energy);
+                        let g = self.groups[r.cand.view];
+                        best[g] = best[g].min(r.energy);
                     }
                     solved.push(r);
                 }
             }
             if ranked && !single && solved.len() >= params.max_detections {
-                if let Some(e) = self.kth_energy(pyr, &mut solved, params) {
-                    best = best.min(e);
+                sort_solved(&mut solved);
+                for (g, b) in best.iter_mut().enumerate() {
+                    if let Some(e) = self.kth_energy(pyr, &solved, params, g) {
+                        *b = b.min(e);
+                    }
                 }
             }
         }
@@ -553,18 +587,18 @@ impl<'a> Detector<'a> {
         (solved, stats)
     }
 
-    /// The energy of the last of `max_detections` detections that survive
-    /// greedy non-maximum suppression among `solved` (sorted in place), if
-    /// that many survive.
+    /// The energy of the last of `max_detections` detections of `group`
+    /// that survive greedy non-maximum suppression among `solved` (sorted),
+    /// if that many survive.
     fn kth_energy(
         &self,
         pyr: &FeaturePyramid,
-        solved: &mut [Solved],
+        solved: &[Solved],
         params: &DetectParams,
+        group: usize,
     ) -> Option<f64> {
-        sort_solved(solved);
         let mut kept: Vec<(f64, f64, f64, f64)> = Vec::new();
-        for s in solved.iter() {
+        for s in solved.iter().filter(|s| self.groups[s.cand.view] == group) {
             let b = self.grid(pyr, &s.cand.location()).pixel_box();
             if kept.iter().any(|k| box_iou(*k, b) > params.nms_iou) {
                 continue;
@@ -587,17 +621,22 @@ impl<'a> Detector<'a> {
     ) -> Vec<Detection> {
         sort_solved(&mut solved);
         let mut out: Vec<Detection> = Vec::new();
+        let mut count = vec![0usize; self.n_groups()];
         for s in solved {
-            if out.len() >= params.max_detections {
-                break;
+            let group = self.groups[s.cand.view];
+            if count[group] >= params.max_detections {
+                continue;
             }
             let view = &self.views[s.cand.view];
             let level = &pyr.levels[s.cand.level];
             let grid = self.grid(pyr, &s.cand.location());
             let bbox = grid.pixel_box();
-            if out.iter().any(|d| box_iou(d.bbox, bbox) > params.nms_iou) {
+            if out.iter().any(|d| {
+                self.groups[d.viewpoint] == group && box_iou(d.bbox, bbox) > params.nms_iou
+            }) {
                 continue;
             }
+            count[group] += 1;
             let (mw, mh) = (level.hog.width(), level.hog.height());
             let truncated = s.cand.x < 0
                 || s.cand.y < 0
