@@ -191,3 +191,42 @@ fn training_cli_refuses_bad_input_with_status_2() {
     assert_eq!(code, Some(2));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Pyramids without their pixels (`PyramidCache::lean`, what `sdhop-train
+/// mesh` keeps to save memory) train exactly the same weights: training
+/// never reads the image or the per-pixel segments.
+#[test]
+fn lean_pyramids_train_the_same_weights() {
+    let params = TrainParams {
+        template_scale: 1.0,
+        max_passes: 2,
+        mining_passes: 1,
+        init_locations: 10,
+        ..TrainParams::default()
+    };
+    let full = PyramidCache::default();
+    let lean = PyramidCache::lean();
+    let mut samples = Vec::new();
+    for (seed, label) in [
+        (300, Some("thing")),
+        (301, Some("thing")),
+        (302, Some("thing")),
+        (303, None),
+        (304, None),
+    ] {
+        let (s, sc) = make_sample(&full, &params, &OBJECT, seed, label);
+        let pyr = FeaturePyramid::build(&sc.image, &params.pyramid, &params.segmentation)
+            .unwrap()
+            .lean()
+            .unwrap();
+        assert!(!pyr.has_pixels());
+        assert!(full.get(&s.image).unwrap().has_pixels());
+        lean.insert(s.image.clone(), pyr);
+        samples.push(s);
+    }
+    let refs: Vec<&Sample> = samples.iter().collect();
+    let pb = indicatif::ProgressBar::hidden();
+    let (a, _) = train_model("thing", &refs, &full, &params, &pb).unwrap();
+    let (b, _) = train_model("thing", &refs, &lean, &params, &pb).unwrap();
+    assert_eq!(a.views, b.views);
+}

@@ -475,7 +475,10 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         })
         .collect();
     let refs: Vec<&Sample> = samples.iter().chain(&negatives).collect();
-    let cache = PyramidCache::default();
+    // Pyramids without their pixels: the renders' and negatives' images
+    // and per-pixel segments are a quarter of the memory, and training
+    // needs none of them (LM-O cat: 3.79 GiB peak with them).
+    let cache = PyramidCache::lean();
     let pb = progress_bar(0, &format!("{model_name}: training"));
     let labels: Vec<&str> = args.name.iter().map(String::as_str).collect();
     let (mut model, report) =

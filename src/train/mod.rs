@@ -202,9 +202,21 @@ impl TrainParams {
 #[derive(Default)]
 pub struct PyramidCache {
     map: std::sync::Mutex<HashMap<PathBuf, Arc<FeaturePyramid>>>,
+    /// Keep [`FeaturePyramid::lean`] pyramids.
+    lean: bool,
 }
 
 impl PyramidCache {
+    /// A cache of pyramids without their pixels ([`FeaturePyramid::lean`]):
+    /// enough for training, a quarter less memory; masks of detections in
+    /// them are the raw cell masks.
+    pub fn lean() -> Self {
+        Self {
+            lean: true,
+            ..Self::default()
+        }
+    }
+
     /// Computes the missing pyramids in parallel.
     pub fn fill(
         &self,
@@ -230,7 +242,10 @@ impl PyramidCache {
             .par_iter()
             .map(|p| {
                 let img = load_image(p)?;
-                let pyr = FeaturePyramid::build(&img, pyramid, seg)?;
+                let mut pyr = FeaturePyramid::build(&img, pyramid, seg)?;
+                if self.lean {
+                    pyr = pyr.lean()?;
+                }
                 progress.inc(1);
                 Ok(((*p).clone(), Arc::new(pyr)))
             })
@@ -820,8 +835,8 @@ pub fn learn_shapes(
                 .filter_map(|s| {
                     let an = s.annotation.as_ref()?;
                     let img = match cache.and_then(|c| c.get(&s.image)) {
-                        Some(p) => p.image.clone(),
-                        None => Arc::new(load_image(&s.image).ok()?),
+                        Some(p) if p.has_pixels() => p.image.clone(),
+                        _ => Arc::new(load_image(&s.image).ok()?),
                     };
                     Some((img, &an.visible))
                 })

@@ -116,6 +116,24 @@ fn ms(t: Instant) -> f64 {
 }
 
 impl FeaturePyramid {
+    /// The pyramid without its pixels (the image and the per-pixel segment
+    /// labels; the HOG levels, their cell segments and the segment count
+    /// stay): what training needs of it, at a quarter less memory. Masks
+    /// made from it are the raw cell masks (see [`Self::has_pixels`]).
+    pub fn lean(mut self) -> Result<Self, VisionError> {
+        self.image = std::sync::Arc::new(ColorImage::new(1, 1, vec![0.0; 3])?);
+        self.segmentation = self.segmentation.without_labels();
+        Ok(self)
+    }
+
+    /// Whether the image and its per-pixel segments are here (not a
+    /// [`Self::lean`] pyramid).
+    pub fn has_pixels(&self) -> bool {
+        (self.image.width(), self.image.height()) == (self.image_width, self.image_height)
+            && (self.segmentation.width(), self.segmentation.height())
+                == (self.image_width, self.image_height)
+    }
+
     /// Builds the pyramid: segmentation and the HOG levels in parallel.
     pub fn build(
         img: &ColorImage,

@@ -116,6 +116,18 @@ impl Segmentation {
         self.height
     }
 
+    /// The segment count alone, without the per-pixel labels (an empty
+    /// `0 x 0` map): for pyramids kept only for training (see
+    /// [`crate::vision::pyramid::FeaturePyramid::lean`]).
+    pub fn without_labels(&self) -> Self {
+        Self {
+            width: 0,
+            height: 0,
+            labels: Vec::new(),
+            count: self.count,
+        }
+    }
+
     /// Number of segments.
     pub fn count(&self) -> usize {
         self.count

@@ -688,6 +688,9 @@ pub fn detection_masks(
     shape: Option<&ShapeModel>,
 ) -> (Mask, Mask) {
     let raw = raw_mask(&det.grid, &det.cells, pyr.image_width, pyr.image_height);
+    if !pyr.has_pixels() {
+        return (raw.clone(), raw);
+    }
     let refined = match shape {
         Some(s) if refine.pixel.enabled => refine_pixels(
             &raw,
