@@ -10,7 +10,7 @@ use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, HandModelParams, SynthObject};
 
 mod common;
-use common::{arg, median, vga_scenes};
+use common::{arg, median, stage_times, vga_scenes};
 
 fn main() {
     let iters = arg("--iters", 30usize);
@@ -41,22 +41,14 @@ fn main() {
             let t = Instant::now();
             let r = detect_image(&s.image, &[&model], &opts).expect("detect");
             let wall = t.elapsed().as_secs_f64() * 1e3;
-            let tm = &r.timing_ms;
-            for (k, v) in [
-                wall,
-                tm.features,
-                tm.segmentation,
-                tm.cell_segments,
-                tm.responses,
-                tm.mincut,
-                tm.masks,
-            ]
-            .into_iter()
-            .enumerate()
+            for (k, v) in stage_times(wall, &r.timing_ms)
+                .into_iter()
+                .take(7)
+                .enumerate()
             {
                 stage[k].push(v);
             }
-            pruned.push(tm.pruned_fraction);
+            pruned.push(r.timing_ms.pruned_fraction);
         }
         let names = [
             "total",

@@ -10,12 +10,13 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use sdhop::data::ko8::KO8_OBJECTS;
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, DetectResponse, MaskMode};
 use sdhop::vision::image::ColorImage;
 
 mod common;
-use common::{arg, median};
+use common::{arg, median, stage_times};
 
 fn images(dir: &Path, n: usize) -> Vec<ColorImage> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -50,20 +51,7 @@ fn run(
                 let t = Instant::now();
                 let r = detect_image(img, models, opts).expect("detect");
                 let wall = t.elapsed().as_secs_f64() * 1e3;
-                let tm = &r.timing_ms;
-                for (k, v) in [
-                    wall,
-                    tm.features,
-                    tm.segmentation,
-                    tm.cell_segments,
-                    tm.responses,
-                    tm.mincut,
-                    tm.masks,
-                    tm.min_cuts as f64,
-                ]
-                .into_iter()
-                .enumerate()
-                {
+                for (k, v) in stage_times(wall, &r.timing_ms).into_iter().enumerate() {
                     stage[k].push(v);
                 }
                 if it + 1 == iters {
@@ -96,19 +84,10 @@ fn main() {
     let iters = arg("--iters", 3usize);
     let n_full = arg("--no-prune-images", 3usize);
     let imgs = images(&dir, n);
-    let mut models: Vec<Model> = [
-        "bakingpan",
-        "colander",
-        "cup",
-        "pitcher",
-        "saucepan",
-        "scissors",
-        "shaker",
-        "thermos",
-    ]
-    .iter()
-    .map(|m| Model::load(Path::new(&format!("models/{m}.safetensors"))).expect("shipped model"))
-    .collect();
+    let mut models: Vec<Model> = KO8_OBJECTS
+        .iter()
+        .map(|m| Model::load(Path::new(&format!("models/{m}.safetensors"))).expect("shipped model"))
+        .collect();
     let cup_at = models
         .iter()
         .position(|m| m.meta.name == "cup")

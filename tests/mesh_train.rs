@@ -51,9 +51,22 @@ fn write_backgrounds(dir: &Path, n: usize) {
     }
 }
 
+/// Runs `sdhop-train mesh` with `args` and asserts that it succeeded.
+fn train_mesh(args: &[&str]) {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_sdhop-train"))
+        .arg("mesh")
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 #[test]
 fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
-    let bin = env!("CARGO_BIN_EXE_sdhop-train");
     let dir = std::env::temp_dir().join(format!("sdhop-mesh-cli-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -63,35 +76,26 @@ fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
     write_backgrounds(&bgs, 8);
     let out = dir.join("models/box.safetensors");
     let work = dir.join("work");
-    let status = std::process::Command::new(bin)
-        .args([
-            "mesh",
-            "--mesh",
-            ply.to_str().unwrap(),
-            "--name",
-            "box",
-            "--backgrounds",
-            bgs.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--work",
-            work.to_str().unwrap(),
-            "--renders",
-            "80",
-            "--components",
-            "2",
-            "--negatives",
-            "6",
-            "--max-passes",
-            "3",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        status.status.success(),
-        "{}",
-        String::from_utf8_lossy(&status.stderr)
-    );
+    train_mesh(&[
+        "--mesh",
+        ply.to_str().unwrap(),
+        "--name",
+        "box",
+        "--backgrounds",
+        bgs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--work",
+        work.to_str().unwrap(),
+        "--renders",
+        "80",
+        "--components",
+        "2",
+        "--negatives",
+        "6",
+        "--max-passes",
+        "3",
+    ]);
     let coco: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(work.join("coco.json")).unwrap()).unwrap();
     assert_eq!(coco["annotations"].as_array().unwrap().len(), 80);
@@ -263,7 +267,6 @@ fn mesh_training_refuses_bad_input_with_status_2() {
 /// needs the mesh's label.
 #[test]
 fn two_meshes_trained_jointly_detect_each_object_under_its_own_label() {
-    let bin = env!("CARGO_BIN_EXE_sdhop-train");
     let dir = std::env::temp_dir().join(format!("sdhop-mesh-joint-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
@@ -281,39 +284,30 @@ fn two_meshes_trained_jointly_detect_each_object_under_its_own_label() {
     write_backgrounds(&bgs, 8);
     let out = dir.join("models/joint.safetensors");
     let ply = |n: &str| dir.join(format!("{n}.ply")).to_str().unwrap().to_string();
-    let status = std::process::Command::new(bin)
-        .args([
-            "mesh",
-            "--mesh",
-            &ply("box"),
-            "--name",
-            "box",
-            "--mesh",
-            &ply("bar"),
-            "--name",
-            "bar",
-            "--backgrounds",
-            bgs.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--work",
-            dir.join("work").to_str().unwrap(),
-            "--renders",
-            "60",
-            "--components",
-            "2",
-            "--negatives",
-            "6",
-            "--max-passes",
-            "6",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        status.status.success(),
-        "{}",
-        String::from_utf8_lossy(&status.stderr)
-    );
+    train_mesh(&[
+        "--mesh",
+        &ply("box"),
+        "--name",
+        "box",
+        "--mesh",
+        &ply("bar"),
+        "--name",
+        "bar",
+        "--backgrounds",
+        bgs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--work",
+        dir.join("work").to_str().unwrap(),
+        "--renders",
+        "60",
+        "--components",
+        "2",
+        "--negatives",
+        "6",
+        "--max-passes",
+        "6",
+    ]);
     let model = Model::load(&out).unwrap();
     assert_eq!(model.meta.name, "box-bar");
     let labels: Vec<&str> = model

@@ -34,3 +34,20 @@ pub fn vga_scenes(obj: &sdhop::synth::SynthObject, n: u64) -> Vec<sdhop::synth::
         })
         .collect()
 }
+
+/// A detection's wall time (ms) and its stage times, in the order the
+/// benches print them: total, features, segmentation, cell segments,
+/// responses and bounds, min-cuts, masks, then the min-cut count.
+#[allow(dead_code)] // not every bench detects
+pub fn stage_times(wall_ms: f64, tm: &sdhop::pipeline::Timing) -> [f64; 8] {
+    [
+        wall_ms,
+        tm.features,
+        tm.segmentation,
+        tm.cell_segments,
+        tm.responses,
+        tm.mincut,
+        tm.masks,
+        tm.min_cuts as f64,
+    ]
+}
