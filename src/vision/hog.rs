@@ -169,8 +169,35 @@ fn cell_coord(p: usize) -> f32 {
     (p as f32 + 0.5) / CELL_SIZE as f32 - 0.5
 }
 
-/// Computes the HOG map of an image (optimised path).
+/// Computes the HOG map of an image (optimised path), on the best
+/// instruction set of the processor ([`crate::vision::simd`]; every path
+/// gives the same features bit for bit).
 pub fn hog(img: &ColorImage) -> HogMap {
+    #[cfg(target_arch = "x86_64")]
+    match crate::vision::simd::level() {
+        // SAFETY: the features were detected at run time.
+        crate::vision::simd::Simd::Avx512 => return unsafe { hog_avx512(img) },
+        // SAFETY: the features were detected at run time.
+        crate::vision::simd::Simd::Avx2 => return unsafe { hog_avx2(img) },
+        crate::vision::simd::Simd::Portable => {}
+    }
+    hog_body(img)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
+unsafe fn hog_avx512(img: &ColorImage) -> HogMap {
+    hog_body(img)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn hog_avx2(img: &ColorImage) -> HogMap {
+    hog_body(img)
+}
+
+#[inline(always)]
+fn hog_body(img: &ColorImage) -> HogMap {
     let w = img.width();
     let h = img.height();
     let cw = w / CELL_SIZE;
@@ -460,6 +487,28 @@ mod tests {
                 // Each orientation value is half a sum of four truncated values.
                 assert!(c[..27].iter().all(|v| *v <= 2.0 * TRUNCATION + 1e-6));
                 assert_eq!(m.cell_padded(x, y)[HOG_DIM], 0.0);
+            }
+        }
+    }
+
+    /// Every instruction-set path gives the same features bit for bit.
+    #[test]
+    fn hog_paths_are_bit_identical() {
+        for (w, h, seed) in [(67, 45, 3), (129, 97, 4), (640, 480, 5)] {
+            let img = noise_image(w, h, seed);
+            let portable = hog_body(&img);
+            assert_eq!(hog(&img), portable, "{w}x{h}");
+            #[cfg(target_arch = "x86_64")]
+            {
+                use crate::vision::simd::{level, Simd};
+                if matches!(level(), Simd::Avx2 | Simd::Avx512) {
+                    // SAFETY: the features were detected at run time.
+                    assert_eq!(unsafe { hog_avx2(&img) }, portable, "AVX2 {w}x{h}");
+                }
+                if level() == Simd::Avx512 {
+                    // SAFETY: as above.
+                    assert_eq!(unsafe { hog_avx512(&img) }, portable, "AVX-512 {w}x{h}");
+                }
             }
         }
     }

@@ -14,6 +14,7 @@ pub mod refine;
 pub mod rng;
 pub mod segment;
 pub mod shape;
+pub mod simd;
 
 use thiserror::Error;
 

@@ -283,7 +283,7 @@ pub(super) fn dense_row_body(
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
 unsafe fn dense_row_avx512(
     map: &PlanarMap,
     w: &ViewWeights,
@@ -310,48 +310,6 @@ unsafe fn dense_row_avx2(
     dense_row_body(map, w, pair, x0, y, out, s)
 }
 
-/// The instruction set the dense bound runs on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) enum Simd {
-    /// AVX-512F (16 lanes per instruction).
-    Avx512,
-    /// AVX2 and FMA (8 lanes).
-    Avx2,
-    Portable,
-}
-
-/// The best instruction set of this processor for the dense bound, found
-/// once: AVX-512 where there is one (the 16 positions of a block in one
-/// register: the stage took 14.1 ms instead of 19.7 per CMU_KO8 image
-/// with one model, 71.6 instead of 119.9 with eight, on one core), unless
-/// `SDHOP_SIMD=avx2` or `SDHOP_SIMD=portable` asks for less. Every path
-/// computes the same values in the same order: the bounds are
-/// bit-identical.
-pub(super) fn simd_level() -> Simd {
-    static LEVEL: std::sync::OnceLock<Simd> = std::sync::OnceLock::new();
-    *LEVEL.get_or_init(|| {
-        let cap = std::env::var("SDHOP_SIMD").unwrap_or_default();
-        #[cfg(target_arch = "x86_64")]
-        {
-            let avx2 = std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma");
-            let avx512 = avx2 && std::arch::is_x86_feature_detected!("avx512f");
-            match cap.as_str() {
-                "portable" => Simd::Portable,
-                "avx2" if avx2 => Simd::Avx2,
-                _ if avx512 => Simd::Avx512,
-                _ if avx2 => Simd::Avx2,
-                _ => Simd::Portable,
-            }
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            let _ = cap;
-            Simd::Portable
-        }
-    })
-}
-
 pub(super) fn dense_row(
     map: &PlanarMap,
     w: &ViewWeights,
@@ -362,12 +320,16 @@ pub(super) fn dense_row(
     s: &mut DenseScratch,
 ) {
     #[cfg(target_arch = "x86_64")]
-    match simd_level() {
+    match crate::vision::simd::level() {
         // SAFETY: the features were detected at run time.
-        Simd::Avx512 => return unsafe { dense_row_avx512(map, w, pair, x0, y, out, s) },
+        crate::vision::simd::Simd::Avx512 => {
+            return unsafe { dense_row_avx512(map, w, pair, x0, y, out, s) }
+        }
         // SAFETY: the features were detected at run time.
-        Simd::Avx2 => return unsafe { dense_row_avx2(map, w, pair, x0, y, out, s) },
-        Simd::Portable => {}
+        crate::vision::simd::Simd::Avx2 => {
+            return unsafe { dense_row_avx2(map, w, pair, x0, y, out, s) }
+        }
+        crate::vision::simd::Simd::Portable => {}
     }
     dense_row_body(map, w, pair, x0, y, out, s)
 }
@@ -639,7 +601,12 @@ mod tests {
             dense_row_body(&map, &w, 0.05, x_lo, y, &mut portable, &mut s);
             let mut dispatched = vec![0.0f32; nx];
             dense_row(&map, &w, 0.05, x_lo, y, &mut dispatched, &mut s);
-            assert_eq!(portable, dispatched, "row {y} on {:?}", simd_level());
+            assert_eq!(
+                portable,
+                dispatched,
+                "row {y} on {:?}",
+                crate::vision::simd::level()
+            );
             #[cfg(target_arch = "x86_64")]
             {
                 if std::arch::is_x86_feature_detected!("avx2")
@@ -649,7 +616,7 @@ mod tests {
                     // SAFETY: the features were detected at run time.
                     unsafe { dense_row_avx2(&map, &w, 0.05, x_lo, y, &mut out, &mut s) };
                     assert_eq!(portable, out, "AVX2, row {y}");
-                    if std::arch::is_x86_feature_detected!("avx512f") {
+                    if crate::vision::simd::level() == crate::vision::simd::Simd::Avx512 {
                         // SAFETY: as above.
                         unsafe { dense_row_avx512(&map, &w, 0.05, x_lo, y, &mut out, &mut s) };
                         assert_eq!(portable, out, "AVX-512, row {y}");
