@@ -161,20 +161,35 @@ impl Segmentation {
         let col: Vec<usize> = (0..cells_w * cell_size)
             .map(|x| (((x as f64 + 0.5) * sx) as usize).min(self.width - 1))
             .collect();
+        let rows: Vec<usize> = (0..cells_h * cell_size)
+            .map(|y| (((y as f64 + 0.5) * sy) as usize).min(self.height - 1))
+            .collect();
         let mut out = vec![0u32; cells_w * cells_h];
         let mut counts: Vec<(u32, u32)> = Vec::with_capacity(cell_size * cell_size);
         for cy in 0..cells_h {
             for cx in 0..cells_w {
                 counts.clear();
-                for py in cy * cell_size..(cy + 1) * cell_size {
-                    let iy = (((py as f64 + 0.5) * sy) as usize).min(self.height - 1);
+                // Neighbouring pixels mostly share a segment: the entry of
+                // the previous pixel's label is tried first.
+                let mut last = usize::MAX;
+                for &iy in &rows[cy * cell_size..(cy + 1) * cell_size] {
                     let row = &self.labels[iy * self.width..(iy + 1) * self.width];
                     for &ix in &col[cx * cell_size..(cx + 1) * cell_size] {
                         let l = row[ix];
-                        match counts.iter_mut().find(|(k, _)| *k == l) {
-                            Some((_, c)) => *c += 1,
-                            None => counts.push((l, 1)),
+                        if let Some(e) = counts.get_mut(last).filter(|e| e.0 == l) {
+                            e.1 += 1;
+                            continue;
                         }
+                        last = match counts.iter().position(|(k, _)| *k == l) {
+                            Some(i) => {
+                                counts[i].1 += 1;
+                                i
+                            }
+                            None => {
+                                counts.push((l, 1));
+                                counts.len() - 1
+                            }
+                        };
                     }
                 }
                 let mut best = (u32::MAX, 0u32);
@@ -422,6 +437,51 @@ fn compact(w: usize, h: usize, raw: Vec<u32>) -> Result<Segmentation, VisionErro
 #[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
+
+    /// The majority segment of every cell, against a direct count with a
+    /// map (ties to the lower label), on random piecewise label maps at
+    /// several level sizes.
+    #[test]
+    fn cell_labels_match_a_direct_majority_count() {
+        let mut rng = crate::vision::rng::SplitMix64::new(21);
+        let (w, h) = (97, 61);
+        let raw: Vec<u32> = (0..w * h)
+            .map(|p| {
+                let (x, y) = (p % w, p / w);
+                ((x / 7 + y / 5) % 6) as u32 + u32::from(rng.next_f64() < 0.2) * 7
+            })
+            .collect();
+        let s = Segmentation::from_labels(w, h, &raw).unwrap();
+        for (lw, lh) in [(97, 61), (160, 100), (64, 40), (33, 20)] {
+            let (cw, ch) = (lw / 8, lh / 8);
+            let got = s.cell_labels(lw, lh, cw, ch, 8);
+            let (sx, sy) = (w as f64 / lw as f64, h as f64 / lh as f64);
+            for cy in 0..ch {
+                for cx in 0..cw {
+                    let mut n = std::collections::BTreeMap::new();
+                    for py in cy * 8..cy * 8 + 8 {
+                        for px in cx * 8..cx * 8 + 8 {
+                            let ix = (((px as f64 + 0.5) * sx) as usize).min(w - 1);
+                            let iy = (((py as f64 + 0.5) * sy) as usize).min(h - 1);
+                            *n.entry(s.label(ix, iy)).or_insert(0u32) += 1;
+                        }
+                    }
+                    // Ascending labels: the first of the largest count.
+                    let best = n.iter().fold(
+                        (u32::MAX, 0),
+                        |b, (&l, &c)| {
+                            if c > b.1 {
+                                (l, c)
+                            } else {
+                                b
+                            }
+                        },
+                    );
+                    assert_eq!(got[cy * cw + cx], best.0, "{lw}x{lh} cell {cx},{cy}");
+                }
+            }
+        }
+    }
 
     fn blocks(w: usize, h: usize) -> ColorImage {
         // Four flat quadrants of very different colours.
