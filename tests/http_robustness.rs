@@ -188,16 +188,22 @@ async fn a_detection_past_its_deadline_gives_the_worker_back() {
     };
     // The whole computation, for reference.
     let t = Instant::now();
-    let r = detect("?timeout_ms=120000&threshold=-1000", big.clone())
-        .await
-        .unwrap();
+    let r = detect(
+        "?timeout_ms=120000&threshold=-1000&max_detections=100&masks=both",
+        big.clone(),
+    )
+    .await
+    .unwrap();
     assert_eq!(r.status(), StatusCode::OK);
     let full = t.elapsed();
     // With a short deadline it is answered 503 at the deadline, and the
     // worker stops computing it: a small request right behind it is
     // answered long before the whole computation would have ended.
     let t = Instant::now();
-    let cut = tokio::spawn(detect("?timeout_ms=1500&threshold=-1000", big));
+    let cut = tokio::spawn(detect(
+        "?timeout_ms=1500&threshold=-1000&max_detections=100&masks=both",
+        big,
+    ));
     // Past its upload and decoding: the worker computes it.
     tokio::time::sleep(Duration::from_millis(1000)).await;
     let small = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
