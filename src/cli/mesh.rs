@@ -4,6 +4,7 @@
 //! viewing direction and saves the weights file.
 
 use super::*;
+use crate::eval::bop_detect::auc_curve;
 use crate::pose::mesh::Mesh;
 use crate::train::mesh::{render_set, render_set_with, Occluder, RenderParams};
 use crate::train::train_joint;
@@ -195,28 +196,13 @@ fn choose_colour_weight(
     for img in &held {
         scan(img, None)?;
     }
-    let n_images = (samples.len() + held.len()) as f64;
-    let n_pos = samples.len().max(1) as f64;
+    let n_images = samples.len() + held.len();
+    let n_pos = samples.len();
     let table: Vec<(f64, f64)> = COLOUR_WEIGHTS
         .iter()
         .map(|&w| {
-            let mut ranked: Vec<(f64, bool)> =
-                found.iter().map(|&(s, c, t)| (s + w * c, t)).collect();
-            ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
-            // Area under recall against false positives per image, 0 to 1.
-            let (mut tp, mut fp, mut area, mut last_f, mut last_r) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            for (_, t) in ranked {
-                if t {
-                    tp += 1.0;
-                } else {
-                    fp += 1.0;
-                }
-                let (f, r) = ((fp / n_images).min(1.0), tp / n_pos);
-                area += (f - last_f) * last_r;
-                last_f = f;
-                last_r = r;
-            }
-            area += (1.0 - last_f).max(0.0) * last_r;
+            let ranked: Vec<(f64, bool)> = found.iter().map(|&(s, c, t)| (s + w * c, t)).collect();
+            let (area, _, _) = auc_curve(ranked, n_pos, n_images);
             (w, area)
         })
         .collect();

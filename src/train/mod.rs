@@ -570,8 +570,11 @@ pub fn train_joint(
             })
         })
         .collect::<Result<_, _>>()?;
-    let views_of =
-        |l: &str| -> Arc<Vec<bool>> { Arc::new(view_labels.iter().map(|v| v == l).collect()) };
+    // Each object's components, once per object (a joint model only).
+    let views_of: HashMap<&str, Arc<Vec<bool>>> = labels
+        .iter()
+        .map(|&l| (l, Arc::new(view_labels.iter().map(|v| v == l).collect())))
+        .collect();
     let shapes: Vec<(usize, usize)> = (0..n_views)
         .map(|v| template_shape(&positives, v, params))
         .collect::<Result<_, _>>()?;
@@ -640,7 +643,10 @@ pub fn train_joint(
                     bbox: grid.pixel_box(),
                     cells,
                     psi,
-                    views: (labels.len() > 1).then(|| views_of(&a.label)),
+                    views: views_of
+                        .get(a.label.as_str())
+                        .filter(|_| labels.len() > 1)
+                        .cloned(),
                 })
             }
             None => None,

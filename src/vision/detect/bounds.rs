@@ -89,14 +89,14 @@ unsafe fn dot_avx2(a: &[f32], b: &[f32]) -> f32 {
     dot_body(a, b)
 }
 
-/// Dot product, using AVX2 when the processor has it.
+/// Dot product, using AVX2 when [`crate::vision::simd::level`] allows it.
 #[inline]
 pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-        {
-            // SAFETY: the features were detected at run time.
+        use crate::vision::simd::{level, Simd};
+        if matches!(level(), Simd::Avx2 | Simd::Avx512) {
+            // SAFETY: AVX2 and FMA were detected at run time.
             return unsafe { dot_avx2(a, b) };
         }
     }
