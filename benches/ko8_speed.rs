@@ -4,7 +4,7 @@
 //! refined masks; and the same for one model with pruning off, which must
 //! give the very same detections (exact pruning), to show what it saves.
 //!
-//! `cargo bench --bench ko8_speed [-- --images 20 --iters 3 --no-prune-images 3]`
+//! `cargo bench --bench ko8_speed [-- --images 20 --iters 3 --no-prune-images 3 --threads 1|2 --models 1|8]`
 //! (skips with a message without ../shared/data/cmu_ko8).
 
 use std::path::{Path, PathBuf};
@@ -103,14 +103,27 @@ fn main() {
         imgs.len(),
         root.display()
     );
+    // `--threads 1` or `--models 8` run one case only (for profiling).
+    let only_threads = arg("--threads", 0usize);
+    let only_models = arg("--models", 0usize);
     for threads in [1, 2] {
-        let (m, _) = run(&imgs, &[&cup], &opts, threads, iters);
-        print(&format!("1 model (cup), {threads} thread(s)"), &m);
-        let (m, _) = run(&imgs, &all, &opts, threads, iters);
-        print(&format!("8 models, {threads} thread(s)"), &m);
+        if only_threads != 0 && only_threads != threads {
+            continue;
+        }
+        if only_models != 8 {
+            let (m, _) = run(&imgs, &[&cup], &opts, threads, iters);
+            print(&format!("1 model (cup), {threads} thread(s)"), &m);
+        }
+        if only_models != 1 {
+            let (m, _) = run(&imgs, &all, &opts, threads, iters);
+            print(&format!("8 models, {threads} thread(s)"), &m);
+        }
     }
     // Pruning off: the same detections, at what cost.
     let few = &imgs[..n_full.min(imgs.len())];
+    if few.is_empty() {
+        return;
+    }
     let (m_on, on) = run(few, &[&cup], &opts, 2, 1);
     let off_opts = DetectOptions {
         prune: false,

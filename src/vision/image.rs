@@ -91,22 +91,16 @@ impl ColorImage {
         if new_w == self.width && new_h == self.height {
             return Ok(self.clone());
         }
-        let wx = area_weights(self.width, new_w);
+        let wx = FlatTaps::new(&area_weights(self.width, new_w));
         let wy = area_weights(self.height, new_h);
         // Horizontal pass: height x new_w.
         let mut tmp = vec![0.0f32; self.height * new_w * CHANNELS];
-        for y in 0..self.height {
-            let src = &self.data[y * self.width * CHANNELS..(y + 1) * self.width * CHANNELS];
-            let dst = &mut tmp[y * new_w * CHANNELS..(y + 1) * new_w * CHANNELS];
-            for (ox, taps) in wx.iter().enumerate() {
-                let mut acc = [0.0f32; CHANNELS];
-                for &(ix, w) in taps {
-                    for (c, a) in acc.iter_mut().enumerate() {
-                        *a += w * src[ix * CHANNELS + c];
-                    }
-                }
-                dst[ox * CHANNELS..ox * CHANNELS + CHANNELS].copy_from_slice(&acc);
-            }
+        match wx.width {
+            1 => wx.horizontal::<1>(&self.data, self.width, &mut tmp),
+            2 => wx.horizontal::<2>(&self.data, self.width, &mut tmp),
+            3 => wx.horizontal::<3>(&self.data, self.width, &mut tmp),
+            4 => wx.horizontal::<4>(&self.data, self.width, &mut tmp),
+            _ => wx.horizontal_any(&self.data, self.width, &mut tmp),
         }
         // Vertical pass.
         let row = new_w * CHANNELS;
@@ -125,6 +119,82 @@ impl ColorImage {
             height: new_h,
             data: out,
         })
+    }
+}
+
+/// The taps of [`area_weights`] flattened to `width` per output (the
+/// widest output's count), the missing ones with weight 0 on the output's
+/// last input: adding `0 * x` after the real taps leaves every sum as it
+/// was, so the resize computes the very same values without a branch or a
+/// pointer per output.
+struct FlatTaps {
+    width: usize,
+    index: Vec<usize>,
+    weight: Vec<f32>,
+}
+
+impl FlatTaps {
+    fn new(taps: &[Vec<(usize, f32)>]) -> Self {
+        let width = taps.iter().map(Vec::len).max().unwrap_or(1).max(1);
+        let mut index = Vec::with_capacity(taps.len() * width);
+        let mut weight = Vec::with_capacity(taps.len() * width);
+        for t in taps {
+            let last = t.last().map_or(0, |&(i, _)| i);
+            for k in 0..width {
+                let (i, w) = t.get(k).copied().unwrap_or((last, 0.0));
+                index.push(i);
+                weight.push(w);
+            }
+        }
+        Self {
+            width,
+            index,
+            weight,
+        }
+    }
+
+    /// One row pass of `T` taps per output over every row of `src` (rows of
+    /// `src_w` pixels) into `dst` (rows of `self.index.len() / T` pixels).
+    fn horizontal<const T: usize>(&self, src: &[f32], src_w: usize, dst: &mut [f32]) {
+        let out_w = self.index.len() / T;
+        let rows = src.chunks_exact(src_w * CHANNELS);
+        for (s, d) in rows.zip(dst.chunks_exact_mut(out_w * CHANNELS)) {
+            let outs = d.chunks_exact_mut(CHANNELS);
+            let idx = self.index.chunks_exact(T);
+            let wts = self.weight.chunks_exact(T);
+            for ((o, i), w) in outs.zip(idx).zip(wts) {
+                let mut acc = [0.0f32; CHANNELS];
+                for k in 0..T {
+                    let p = &s[i[k] * CHANNELS..i[k] * CHANNELS + CHANNELS];
+                    for c in 0..CHANNELS {
+                        acc[c] += w[k] * p[c];
+                    }
+                }
+                o.copy_from_slice(&acc);
+            }
+        }
+    }
+
+    /// [`FlatTaps::horizontal`] for any width (upscales by large factors).
+    fn horizontal_any(&self, src: &[f32], src_w: usize, dst: &mut [f32]) {
+        let t = self.width;
+        let out_w = self.index.len() / t;
+        let rows = src.chunks_exact(src_w * CHANNELS);
+        for (s, d) in rows.zip(dst.chunks_exact_mut(out_w * CHANNELS)) {
+            let outs = d.chunks_exact_mut(CHANNELS);
+            let idx = self.index.chunks_exact(t);
+            let wts = self.weight.chunks_exact(t);
+            for ((o, i), w) in outs.zip(idx).zip(wts) {
+                let mut acc = [0.0f32; CHANNELS];
+                for (&ik, &wk) in i.iter().zip(w) {
+                    let p = &s[ik * CHANNELS..ik * CHANNELS + CHANNELS];
+                    for (a, v) in acc.iter_mut().zip(p) {
+                        *a += wk * v;
+                    }
+                }
+                o.copy_from_slice(&acc);
+            }
+        }
     }
 }
 
@@ -205,5 +275,63 @@ mod tests {
         let odd = img.resize_area(5, 7).unwrap();
         let mean_out: f32 = odd.data().iter().step_by(3).sum::<f32>() / 35.0;
         assert!((mean_in - mean_out).abs() < 1e-3);
+    }
+
+    /// The resize as first written (a list of taps per output, summed in
+    /// order), which the flattened taps must match bit for bit.
+    fn resize_reference(img: &ColorImage, new_w: usize, new_h: usize) -> Vec<f32> {
+        let wx = area_weights(img.width, new_w);
+        let wy = area_weights(img.height, new_h);
+        let mut tmp = vec![0.0f32; img.height * new_w * CHANNELS];
+        for y in 0..img.height {
+            for (ox, taps) in wx.iter().enumerate() {
+                let mut acc = [0.0f32; CHANNELS];
+                for &(ix, w) in taps {
+                    for c in 0..CHANNELS {
+                        acc[c] += w * img.get(ix, y, c);
+                    }
+                }
+                let at = (y * new_w + ox) * CHANNELS;
+                tmp[at..at + CHANNELS].copy_from_slice(&acc);
+            }
+        }
+        let row = new_w * CHANNELS;
+        let mut out = vec![0.0f32; new_h * row];
+        for (oy, taps) in wy.iter().enumerate() {
+            for &(iy, w) in taps {
+                for x in 0..row {
+                    out[oy * row + x] += w * tmp[iy * row + x];
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn flat_taps_resize_bit_identical_to_reference() {
+        // Noise-like samples so that rounding differences would show.
+        let (w, h) = (97, 61);
+        let data = (0..w * h * CHANNELS)
+            .map(|i| ((i as f32 * 0.618_034).fract() * 255.0))
+            .collect();
+        let img = ColorImage::new(w, h, data).unwrap();
+        for (nw, nh) in [
+            (48, 30),
+            (80, 50),
+            (55, 43),
+            (96, 60),
+            (130, 90),
+            (300, 200),
+            (7, 3),
+        ] {
+            let got = img.resize_area(nw, nh).unwrap();
+            let want = resize_reference(&img, nw, nh);
+            let same = got
+                .data()
+                .iter()
+                .zip(&want)
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{nw}x{nh} differs from the reference");
+        }
     }
 }
