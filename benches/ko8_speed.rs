@@ -4,7 +4,8 @@
 //! refined masks; and the same for one model with pruning off, which must
 //! give the very same detections (exact pruning), to show what it saves.
 //!
-//! `cargo bench --bench ko8_speed [-- --images 20 --iters 3 --no-prune-images 3 --threads 1|2 --models 1|8]`
+//! `cargo bench --bench ko8_speed [-- --images 20 --iters 3 --no-prune-images 3 --threads 1|2 --models 1|8
+//! --models-dir models]`
 //! (skips with a message without ../shared/data/cmu_ko8).
 
 use std::path::{Path, PathBuf};
@@ -84,9 +85,10 @@ fn main() {
     let iters = arg("--iters", 3usize);
     let n_full = arg("--no-prune-images", 3usize);
     let imgs = images(&dir, n);
+    let models_dir = PathBuf::from(arg("--models-dir", "models".to_string()));
     let mut models: Vec<Model> = KO8_OBJECTS
         .iter()
-        .map(|m| Model::load(Path::new(&format!("models/{m}.safetensors"))).expect("shipped model"))
+        .map(|m| Model::load(&models_dir.join(format!("{m}.safetensors"))).expect("model"))
         .collect();
     let cup_at = models
         .iter()

@@ -101,10 +101,21 @@ fn pruning_returns_exactly_the_unpruned_detections() {
         // Low thresholds keep many locations alive, so the early stop of
         // the min-cut is what prunes there.
         let t0 = model.meta.detection.threshold;
-        for (threshold, max_detections) in [(t0, 1), (t0, 5), (t0 - 1.0, 5), (t0 - 3.0, 20)] {
+        // Several suppression overlaps: locations overlapping a settled
+        // detection are suppressed without a min-cut.
+        let cases = [
+            (t0, 1, 0.4),
+            (t0, 5, 0.4),
+            (t0 - 1.0, 5, 0.4),
+            (t0 - 3.0, 20, 0.4),
+            (t0 - 3.0, 20, 0.1),
+            (t0 - 3.0, 20, 0.8),
+        ];
+        for (threshold, max_detections, nms_iou) in cases {
             let mut p = DetectParams {
                 max_detections,
                 threshold,
+                nms_iou,
                 ..model.meta.detection
             };
             p.prune = true;
@@ -113,7 +124,7 @@ fn pruning_returns_exactly_the_unpruned_detections() {
             let (full, st_f) = detector.detect(pyr, &p).unwrap();
             assert_eq!(
                 pruned, full,
-                "threshold {threshold}, max_detections {max_detections}"
+                "threshold {threshold}, max_detections {max_detections}, nms_iou {nms_iou}"
             );
             assert!(!full.is_empty());
             assert_eq!(st_p.locations, st_f.locations);

@@ -533,18 +533,30 @@ impl<'a> Detector<'a> {
         // greedy suppression, so it can never be reported.
         let single = params.max_detections == 1 && params.prune;
         let ranked = params.prune && budget.is_none();
+        // Suppressed unsolved: a solved detection whose place in the greedy
+        // suppression is settled (no unsolved location can rank before it)
+        // suppresses every location it overlaps whose bound is above its
+        // energy, so those need no min-cut (they would rank after it and be
+        // suppressed by it, or fall beyond `max_detections` of their group;
+        // either way never reported, and suppressed ones suppress nothing).
+        let suppress_unsolved = ranked && !single && aug.is_none();
         let mut solved: Vec<Solved> = Vec::new();
         // The cut-off of each group (a location can only be reported among
         // its own group's detections).
         let mut best = vec![cut; self.n_groups()];
+        // Settled detections: (group, energy, pixel box).
+        let mut settled: Vec<(usize, f64, (f64, f64, f64, f64))> = Vec::new();
         let chunk = if single {
             64
+        } else if suppress_unsolved {
+            // Small blocks, so that settled detections take effect early.
+            (4 * rayon::current_num_threads()).max(8)
         } else if ranked {
             256
         } else {
             cands.len().max(1)
         };
-        for block in cands.chunks(chunk) {
+        for (bi, block) in cands.chunks(chunk).enumerate() {
             let worst = best.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             if (single || ranked) && block[0].bound - margin(block[0].bound) > worst {
                 break;
@@ -553,14 +565,24 @@ impl<'a> Detector<'a> {
                 break;
             }
             let cutoff = &best;
+            let settled_now = &settled;
             let out: Vec<Option<Solved>> = block
                 .par_iter()
                 .map_init(Scratch::default, |s, c| {
-                    let cutoff = cutoff[self.groups[c.view]];
-                    if (single || ranked) && c.bound - margin(c.bound) > cutoff {
+                    let group = self.groups[c.view];
+                    let lower = c.bound - margin(c.bound);
+                    if (single || ranked) && lower > cutoff[group] {
                         return None;
                     }
-                    self.solve(pyr, c, cutoff, params.prune, aug, s)
+                    if settled_now.iter().any(|&(g, e, _)| g == group && e < lower) {
+                        let b = self.grid(pyr, &c.location()).pixel_box();
+                        if settled_now.iter().any(|&(g, e, k)| {
+                            g == group && e < lower && box_iou(k, b) > params.nms_iou
+                        }) {
+                            return None;
+                        }
+                    }
+                    self.solve(pyr, c, cutoff[group], params.prune, aug, s)
                 })
                 .collect();
             for r in out.into_iter().flatten() {
@@ -581,10 +603,46 @@ impl<'a> Detector<'a> {
                     }
                 }
             }
+            if suppress_unsolved {
+                // Every later location has an energy of at least `floor`
+                // (the blocks are in order of the bound, and the bound minus
+                // its margin grows with the bound).
+                let floor = cands
+                    .get((bi + 1) * chunk)
+                    .map_or(f64::INFINITY, |c| c.bound - margin(c.bound));
+                sort_solved(&mut solved);
+                settled = self.settled(pyr, &solved, params, floor);
+            }
         }
         stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
         stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
         (solved, stats)
+    }
+
+    /// The detections of `solved` (sorted) that survive greedy
+    /// non-maximum suppression within their group and whose energy is below
+    /// `floor`, the least energy any unsolved location can have: their
+    /// survival is then final. As `(group, energy, pixel box)`.
+    fn settled(
+        &self,
+        pyr: &FeaturePyramid,
+        solved: &[Solved],
+        params: &DetectParams,
+        floor: f64,
+    ) -> Vec<(usize, f64, (f64, f64, f64, f64))> {
+        let mut kept: Vec<(usize, f64, (f64, f64, f64, f64))> = Vec::new();
+        for s in solved.iter().take_while(|s| s.energy < floor) {
+            let g = self.groups[s.cand.view];
+            let b = self.grid(pyr, &s.cand.location()).pixel_box();
+            if kept
+                .iter()
+                .any(|&(kg, _, k)| kg == g && box_iou(k, b) > params.nms_iou)
+            {
+                continue;
+            }
+            kept.push((g, s.energy, b));
+        }
+        kept
     }
 
     /// The energy of the last of `max_detections` detections of `group`
