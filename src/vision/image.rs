@@ -312,7 +312,7 @@ mod tests {
         // Noise-like samples so that rounding differences would show.
         let (w, h) = (97, 61);
         let data = (0..w * h * CHANNELS)
-            .map(|i| ((i as f32 * 0.618_034).fract() * 255.0))
+            .map(|i| (i as f32 * 0.618_034).fract() * 255.0)
             .collect();
         let img = ColorImage::new(w, h, data).unwrap();
         for (nw, nh) in [

@@ -238,6 +238,10 @@ pub struct Augmented {
     pub value: f64,
 }
 
+/// A detection whose survival of the greedy suppression is final:
+/// `(group, energy, pixel box)`.
+type Settled = (usize, f64, (f64, f64, f64, f64));
+
 struct Solved {
     cand: Candidate,
     energy: f64,
@@ -545,7 +549,7 @@ impl<'a> Detector<'a> {
         // its own group's detections).
         let mut best = vec![cut; self.n_groups()];
         // Settled detections: (group, energy, pixel box).
-        let mut settled: Vec<(usize, f64, (f64, f64, f64, f64))> = Vec::new();
+        let mut settled: Vec<Settled> = Vec::new();
         let chunk = if single {
             64
         } else if suppress_unsolved {
@@ -629,8 +633,8 @@ impl<'a> Detector<'a> {
         solved: &[Solved],
         params: &DetectParams,
         floor: f64,
-    ) -> Vec<(usize, f64, (f64, f64, f64, f64))> {
-        let mut kept: Vec<(usize, f64, (f64, f64, f64, f64))> = Vec::new();
+    ) -> Vec<Settled> {
+        let mut kept: Vec<Settled> = Vec::new();
         for s in solved.iter().take_while(|s| s.energy < floor) {
             let g = self.groups[s.cand.view];
             let b = self.grid(pyr, &s.cand.location()).pixel_box();
