@@ -61,13 +61,16 @@ fn run(
             }
         }
     });
-    (stage.iter_mut().map(|v| median(v)).collect(), last)
+    let mut m: Vec<f64> = stage.iter_mut().map(|v| median(v)).collect();
+    let mut counts: Vec<f64> = last.iter().map(|r| r.detections.len() as f64).collect();
+    m.push(median(&mut counts));
+    (m, last)
 }
 
 fn print(label: &str, m: &[f64]) {
     println!(
-        "{label:<34} {:>8.1} | features {:.1}, segmentation {:.1}, cell segments {:.1}, responses+bounds {:.1}, min-cuts {:.1} ({:.0}), masks {:.1}",
-        m[0], m[1], m[2], m[3], m[4], m[5], m[7], m[6]
+        "{label:<34} {:>8.1} | features {:.1}, segmentation {:.1}, cell segments {:.1}, responses+bounds {:.1}, min-cuts {:.1} ({:.0}), masks {:.1} ({:.0} detections)",
+        m[0], m[1], m[2], m[3], m[4], m[5], m[7], m[6], m[8]
     );
 }
 

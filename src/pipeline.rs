@@ -2,6 +2,7 @@
 //! `POST /detect`): one pyramid per distinct feature setting, every model's
 //! scan, masks, timings, and a PNG overlay for inspection.
 
+use rayon::prelude::*;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -358,55 +359,60 @@ fn run_model(
     let t = Instant::now();
     // The image's colours, for the colour agreement of models that use it.
     let image_colours = (params.colour_weight > 0.0).then(|| image_colours(&pyr.image));
-    for d in dets {
-        if opts.deadline.passed() {
-            return Err(VisionError::DeadlineExceeded);
-        }
-        let label = &m.viewpoints[d.viewpoint].label;
-        if opts.label.as_ref().is_some_and(|l| l != label) {
-            continue;
-        }
-        let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
-        let mut score = d.score;
-        let object_colours = shape.and_then(|s| s.colours.as_ref());
-        let masks = match (&image_colours, object_colours) {
-            (Some(ic), Some(oc)) => {
-                let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
-                score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
-                Some((raw, refined))
+    // Each detection's masks on their own: in parallel, in order.
+    let made: Vec<Option<DetectionJson>> = dets
+        .into_par_iter()
+        .map(|d| -> Result<Option<DetectionJson>, VisionError> {
+            if opts.deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
             }
-            _ => None,
-        };
-        let (raw, refined) = if opts.masks == MaskMode::None {
-            (None, None)
-        } else {
-            let (raw, refined) =
-                masks.unwrap_or_else(|| detection_masks(&d, pyr, &params.refine, shape));
-            let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
-            let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
-            (
-                want_raw.then(|| raw.to_rle()),
-                want_refined.then(|| refined.to_rle()),
-            )
-        };
-        detections.push(DetectionJson {
-            label: label.clone(),
-            model: m.name.clone(),
-            score,
-            bbox: BoxJson {
-                x: d.bbox.0,
-                y: d.bbox.1,
-                width: d.bbox.2,
-                height: d.bbox.3,
-            },
-            viewpoint: d.viewpoint,
-            level: d.level,
-            visible_fraction: d.visible_fraction,
-            truncated: d.truncated,
-            mask: refined,
-            raw_mask: raw,
-        });
-    }
+            let label = &m.viewpoints[d.viewpoint].label;
+            if opts.label.as_ref().is_some_and(|l| l != label) {
+                return Ok(None);
+            }
+            let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+            let mut score = d.score;
+            let object_colours = shape.and_then(|s| s.colours.as_ref());
+            let masks = match (&image_colours, object_colours) {
+                (Some(ic), Some(oc)) => {
+                    let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
+                    score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
+                    Some((raw, refined))
+                }
+                _ => None,
+            };
+            let (raw, refined) = if opts.masks == MaskMode::None {
+                (None, None)
+            } else {
+                let (raw, refined) =
+                    masks.unwrap_or_else(|| detection_masks(&d, pyr, &params.refine, shape));
+                let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
+                let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
+                (
+                    want_raw.then(|| raw.to_rle()),
+                    want_refined.then(|| refined.to_rle()),
+                )
+            };
+            Ok(Some(DetectionJson {
+                label: label.clone(),
+                model: m.name.clone(),
+                score,
+                bbox: BoxJson {
+                    x: d.bbox.0,
+                    y: d.bbox.1,
+                    width: d.bbox.2,
+                    height: d.bbox.3,
+                },
+                viewpoint: d.viewpoint,
+                level: d.level,
+                visible_fraction: d.visible_fraction,
+                truncated: d.truncated,
+                mask: refined,
+                raw_mask: raw,
+            }))
+        })
+        .collect::<Result<_, _>>()?;
+    detections.extend(made.into_iter().flatten());
     timing.masks += t.elapsed().as_secs_f64() * 1e3;
     Ok(())
 }

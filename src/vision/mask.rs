@@ -74,25 +74,63 @@ impl Mask {
     /// COCO uncompressed RLE: column-major run lengths, starting with a run
     /// of zeros (possibly empty).
     pub fn to_rle(&self) -> Rle {
+        let (w, h) = (self.width, self.height);
         let mut counts = Vec::new();
         let mut current = 0u8;
         let mut run = 0u32;
-        for x in 0..self.width {
-            for y in 0..self.height {
-                let v = u8::from(self.get(x, y));
-                if v != current {
-                    counts.push(run);
-                    run = 0;
-                    current = v;
-                }
-                run += 1;
+        // Appends `n` pixels of value `v` in column-major order.
+        let mut feed = |v: u8, n: usize| {
+            if n == 0 {
+                return;
             }
+            if v != current {
+                counts.push(run);
+                run = 0;
+                current = v;
+            }
+            run += n as u32;
+        };
+        // Only the columns and rows of the set pixels' bounding box need
+        // reading; the pixels around it are zeros, fed as whole runs.
+        if let Some((bx0, by0, bx1, by1)) = self.bounds() {
+            feed(0, bx0 * h);
+            for x in bx0..=bx1 {
+                feed(0, by0);
+                for y in by0..=by1 {
+                    feed(u8::from(self.get(x, y)), 1);
+                }
+                feed(0, h - 1 - by1);
+            }
+            feed(0, (w - 1 - bx1) * h);
+        } else {
+            feed(0, w * h);
         }
         counts.push(run);
         Rle {
-            size: [self.height, self.width],
+            size: [h, w],
             counts,
         }
+    }
+
+    /// The inclusive bounding box `(x0, y0, x1, y1)` of the set pixels, if
+    /// any.
+    pub fn bounds(&self) -> Option<(usize, usize, usize, usize)> {
+        let w = self.width;
+        if w == 0 {
+            return None;
+        }
+        let mut b: Option<(usize, usize, usize, usize)> = None;
+        for (y, row) in self.data.chunks_exact(w).enumerate() {
+            let Some(first) = row.iter().position(|&v| v != 0) else {
+                continue;
+            };
+            let last = row.iter().rposition(|&v| v != 0).unwrap_or(first);
+            b = Some(match b {
+                None => (first, y, last, y),
+                Some((x0, y0, x1, _)) => (x0.min(first), y0, x1.max(last), y),
+            });
+        }
+        b
     }
 
     /// Decodes a COCO uncompressed RLE; `None` when the counts do not cover
@@ -437,5 +475,50 @@ mod tests {
             },
         );
         assert_eq!(keep, m);
+    }
+
+    /// The column-major run lengths read pixel by pixel, as `to_rle` was
+    /// first written.
+    fn rle_direct(m: &Mask) -> Vec<u32> {
+        let (mut counts, mut current, mut run) = (Vec::new(), 0u8, 0u32);
+        for x in 0..m.width {
+            for y in 0..m.height {
+                let v = u8::from(m.get(x, y));
+                if v != current {
+                    counts.push(run);
+                    run = 0;
+                    current = v;
+                }
+                run += 1;
+            }
+        }
+        counts.push(run);
+        counts
+    }
+
+    #[test]
+    fn rle_from_the_bounding_box_equals_the_direct_scan() {
+        let mut rng = crate::vision::rng::SplitMix64::new(11);
+        for t in 0..200 {
+            let (w, h) = (1 + t % 13, 1 + (t / 13) % 11);
+            let mut m = Mask::new(w, h);
+            // Empty, full, single pixels and random blobs.
+            match t % 4 {
+                0 => {}
+                1 => m.data.fill(1),
+                2 => {
+                    let (x, y) = (rng.range_usize(0, w), rng.range_usize(0, h));
+                    m.set(x, y, true);
+                }
+                _ => {
+                    for v in m.data.iter_mut() {
+                        *v = u8::from(rng.range_usize(0, 3) == 0);
+                    }
+                }
+            }
+            assert_eq!(m.to_rle().counts, rle_direct(&m), "{w}x{h}, case {}", t % 4);
+            let b = m.bounds();
+            assert_eq!(b.is_none(), m.data.iter().all(|&v| v == 0));
+        }
     }
 }

@@ -186,9 +186,14 @@ struct Cut<'a> {
     /// Shape probability per box pixel, and it times the cell label.
     s: Vec<f64>,
     q: Vec<f64>,
-    seg_sum: std::collections::HashMap<u32, (f64, f64)>,
+    /// Per segment of the image: the sum of `q` and the pixel count over
+    /// the box (indexed by segment label).
+    seg_sum: Vec<(f64, f64)>,
     beta: f64,
     ring_hist: Vec<f64>,
+    /// The smoothness capacities to the right and lower neighbour of each
+    /// range pixel (the same for every cut of the detection: made once).
+    pair_caps: Vec<[f64; 2]>,
     graph: Graph,
 }
 
@@ -248,9 +253,10 @@ impl<'a> Cut<'a> {
             inner,
             s: vec![0.0; bw * bh],
             q: vec![0.0; bw * bh],
-            seg_sum: std::collections::HashMap::new(),
+            seg_sum: vec![(0.0, 0.0); seg.count()],
             beta,
             ring_hist,
+            pair_caps: Vec::new(),
             graph: Graph::new(),
         }
     }
@@ -265,7 +271,7 @@ impl<'a> Cut<'a> {
         let (x0, y0, x1, y1) = self.range;
         let bw = x1 - x0;
         let (bx, by, bwf, bhf) = placement;
-        self.seg_sum.clear();
+        self.seg_sum.fill((0.0, 0.0));
         for y in y0..y1 {
             for x in x0..x1 {
                 let i = (y - y0) * bw + (x - x0);
@@ -273,10 +279,7 @@ impl<'a> Cut<'a> {
                 let fy = (y as f64 + 0.5 - by) / bhf;
                 self.s[i] = shape.at(fx, fy);
                 self.q[i] = if self.raw.get(x, y) { self.s[i] } else { 0.0 };
-                let e = self
-                    .seg_sum
-                    .entry(self.seg.label(x, y))
-                    .or_insert((0.0, 0.0));
+                let e = &mut self.seg_sum[self.seg.label(x, y) as usize];
                 e.0 += self.q[i];
                 e.1 += 1.0;
             }
@@ -340,6 +343,27 @@ impl<'a> Cut<'a> {
                     }
                 }
             }
+            if params.smoothness > 0.0 && self.pair_caps.is_empty() {
+                let beta = self.beta;
+                let cap = |a, b| params.smoothness * (-beta * colour_diff(img, a, b)).exp();
+                self.pair_caps = (y0..y1)
+                    .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        [
+                            if x + 1 < x1 {
+                                cap((x, y), (x + 1, y))
+                            } else {
+                                0.0
+                            },
+                            if y + 1 < y1 {
+                                cap((x, y), (x, y + 1))
+                            } else {
+                                0.0
+                            },
+                        ]
+                    })
+                    .collect();
+            }
             let inner = self.inner;
             let g = &mut self.graph;
             g.reset();
@@ -347,11 +371,8 @@ impl<'a> Cut<'a> {
             for y in y0..y1 {
                 for x in x0..x1 {
                     let i = (y - y0) * bw + (x - x0);
-                    let (fsum, fcount) = self
-                        .seg_sum
-                        .get(&self.seg.label(x, y))
-                        .copied()
-                        .unwrap_or((0.0, 1.0));
+                    // Every pixel of the range counted its own segment.
+                    let (fsum, fcount) = self.seg_sum[self.seg.label(x, y) as usize];
                     let f = fsum / fcount.max(1.0);
                     let cell = if !in_box(inner, x, y) {
                         0.0
@@ -369,15 +390,12 @@ impl<'a> Cut<'a> {
                     // background cuts its source capacity.
                     g.add_tweights(i, l.max(0.0), (-l).max(0.0));
                     if params.smoothness > 0.0 {
+                        let [right, down] = self.pair_caps[i];
                         if x + 1 < x1 {
-                            let c = params.smoothness
-                                * (-self.beta * colour_diff(img, (x, y), (x + 1, y))).exp();
-                            g.add_edge(i, i + 1, c, c);
+                            g.add_edge(i, i + 1, right, right);
                         }
                         if y + 1 < y1 {
-                            let c = params.smoothness
-                                * (-self.beta * colour_diff(img, (x, y), (x, y + 1))).exp();
-                            g.add_edge(i, i + bw, c, c);
+                            g.add_edge(i, i + bw, down, down);
                         }
                     }
                 }
