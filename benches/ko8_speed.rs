@@ -17,6 +17,10 @@ use sdhop::pipeline::{detect_image, DetectOptions, DetectResponse, MaskMode};
 use sdhop::vision::image::ColorImage;
 
 mod common;
+
+// The servers' allocator, so that the figures are theirs.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use common::{arg, median, stage_times};
 
 fn images(dir: &Path, n: usize) -> Vec<ColorImage> {

@@ -625,4 +625,84 @@ mod tests {
         assert_eq!(s.cell_labels(8, 4, 1, 0, 8), Vec::<u32>::new());
         assert_eq!(s.cell_labels(8, 8, 1, 1, 8), vec![1]);
     }
+
+    /// Felzenszwalb-Huttenlocher as first written here: edges pixel by
+    /// pixel, a comparison sort by (weight, id), the small-component pass
+    /// over every edge.
+    fn segment_reference(img: &ColorImage, params: &SegmentParams) -> Vec<u32> {
+        let smooth = gaussian_blur(img, params.sigma);
+        let (w, h) = (smooth.width(), smooth.height());
+        let d = smooth.data();
+        let mut edges: Vec<(f32, usize, usize)> = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                for &(dx, dy) in DIRS.iter() {
+                    let (nx, ny) = (x as isize + dx, y as isize + dy);
+                    if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                        continue;
+                    }
+                    let q = ny as usize * w + nx as usize;
+                    let mut s = 0.0f32;
+                    for c in 0..CHANNELS {
+                        let diff = d[p * CHANNELS + c] - d[q * CHANNELS + c];
+                        s += diff * diff;
+                    }
+                    edges.push((s.sqrt(), p, q));
+                }
+            }
+        }
+        // Stable: equal weights keep their pixel-then-direction order.
+        edges.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut sets = DisjointSets::new(w * h);
+        let mut thresh = vec![params.k; w * h];
+        for &(wgt, p, q) in &edges {
+            let (a, b) = (sets.find(p as u32), sets.find(q as u32));
+            if a != b && wgt <= thresh[a as usize] && wgt <= thresh[b as usize] {
+                let r = sets.join(a, b);
+                thresh[r as usize] = wgt + params.k / sets.size[r as usize] as f32;
+            }
+        }
+        for &(_, p, q) in &edges {
+            let (a, b) = (sets.find(p as u32), sets.find(q as u32));
+            if a != b
+                && ((sets.size[a as usize] as usize) < params.min_size
+                    || (sets.size[b as usize] as usize) < params.min_size)
+            {
+                sets.join(a, b);
+            }
+        }
+        let raw: Vec<u32> = (0..(w * h) as u32).map(|p| sets.find(p)).collect();
+        compact(w, h, raw).unwrap().labels
+    }
+
+    #[test]
+    fn segmentation_equals_the_reference_implementation() {
+        let mut rng = crate::vision::rng::SplitMix64::new(8);
+        for (w, h) in [(61, 47), (1, 9), (9, 1), (2, 2), (40, 33)] {
+            // Blocks of colour with noise: ties and many small pieces.
+            let data: Vec<f32> = (0..w * h * CHANNELS)
+                .map(|i| {
+                    let p = i / CHANNELS;
+                    let block = ((p % w) / 7 + (p / w) / 5) % 3;
+                    (block * 80) as f32 + rng.range_usize(0, 4) as f32 * 10.0
+                })
+                .collect();
+            let img = ColorImage::new(w, h, data).unwrap();
+            for (k, min_size) in [(300.0, 50), (50.0, 5), (10.0, 1)] {
+                let params = SegmentParams {
+                    sigma: 0.5,
+                    k,
+                    min_size,
+                    downsample: 1,
+                };
+                let got = segment(&img, &params).unwrap();
+                assert_eq!(
+                    got.labels,
+                    segment_reference(&img, &params),
+                    "{w}x{h}, k {k}, min_size {min_size}"
+                );
+            }
+        }
+    }
 }
