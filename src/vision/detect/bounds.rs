@@ -707,9 +707,9 @@ mod tests {
                         let (mut f, mut o) = (0.0, 0.0);
                         if cx >= 0 && cy >= 0 && (cx as usize) < mw && (cy as usize) < mh {
                             let h = hog.cell(cx as usize, cy as usize);
-                            for d in 0..HOG_DIM {
-                                f += f64::from(w.w_vis[i * HOG_STRIDE + d] * h[d]);
-                                o += f64::from(w.w_occ[i * HOG_STRIDE + d] * h[d]);
+                            for (d, &hd) in h.iter().enumerate().take(HOG_DIM) {
+                                f += f64::from(w.w_vis[i * HOG_STRIDE + d] * hd);
+                                o += f64::from(w.w_occ[i * HOG_STRIDE + d] * hd);
                             }
                         }
                         (0.5 * (o + f64::from(w.w_prior[i])), 0.5 * f)
