@@ -175,6 +175,10 @@ impl FeaturePyramid {
                         if deadline.passed() {
                             return Err(VisionError::DeadlineExceeded);
                         }
+                        // The full-size level reads the image itself.
+                        if (lw, lh) == (w, h) {
+                            return Ok((lw, lh, hog(img)));
+                        }
                         let resized = img.resize_area(lw, lh)?;
                         Ok((lw, lh, hog(&resized)))
                     })
