@@ -9,23 +9,14 @@
 //!
 //! `cargo run --release --example cheap_bound -- [MODEL] [N_IMAGES]`
 
-use sdhop::model::Model;
 use sdhop::vision::detect::{chain_pair_weight, dense_bounds, scan_range};
 use sdhop::vision::hog::{HOG_DIM, HOG_STRIDE};
 use sdhop::vision::pyramid::FeaturePyramid;
 
+mod common;
+
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let name = args.get(1).cloned().unwrap_or_else(|| "cup".into());
-    let n_img: usize = args.get(2).and_then(|v| v.parse().ok()).unwrap_or(3);
-    let model = Model::load(std::path::Path::new(&format!("models/{name}.safetensors"))).unwrap();
-    let dir = format!("../shared/data/cmu_ko8/single/test/{name}");
-    let mut files: Vec<_> = std::fs::read_dir(&dir)
-        .unwrap()
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "jpg"))
-        .collect();
-    files.sort();
+    let (name, model, files, n_img) = common::model_and_images();
     let cut = -model.meta.detection.threshold;
     let trunc = model.meta.detection.max_truncation;
     let (mut total, mut pass_exact, mut pass_cheap) = (0usize, 0usize, 0usize);
@@ -73,9 +64,7 @@ fn main() {
                     let (mut any_e, mut any_c, mut in_block) = (false, false, 0);
                     for xx in 0..lb.nx {
                         let (x0, y0) = (lb.x_lo + xx as isize, lb.y_lo + yy as isize);
-                        let ov = |s: isize, l: usize, mm: usize| {
-                            ((s + l as isize).min(mm as isize) - s.max(0)).max(0) as usize
-                        };
+                        let ov = common::overlap;
                         let inside = ov(x0, v.cols, mw) * ov(y0, v.rows, mh);
                         if inside >= min_inside {
                             total += 1;

@@ -8,23 +8,14 @@
 //! `cargo run --release --example pca_bound -- [MODEL] [N_IMAGES]`
 
 use nalgebra::{DMatrix, SymmetricEigen};
-use sdhop::model::Model;
 use sdhop::vision::detect::{chain_pair_weight, dense_bounds, scan_range};
 use sdhop::vision::hog::{HOG_DIM, HOG_STRIDE};
 use sdhop::vision::pyramid::FeaturePyramid;
 
+mod common;
+
 fn main() {
-    let args: Vec<String> = std::env::args().collect();
-    let name = args.get(1).cloned().unwrap_or_else(|| "cup".into());
-    let n_img: usize = args.get(2).and_then(|v| v.parse().ok()).unwrap_or(3);
-    let model = Model::load(std::path::Path::new(&format!("models/{name}.safetensors"))).unwrap();
-    let dir = format!("../shared/data/cmu_ko8/single/test/{name}");
-    let mut files: Vec<_> = std::fs::read_dir(&dir)
-        .unwrap()
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "jpg"))
-        .collect();
-    files.sort();
+    let (_, model, files, n_img) = common::model_and_images();
     let cut = -model.meta.detection.threshold;
     let trunc = model.meta.detection.max_truncation;
     // Principal directions of all filter cells of all views.
@@ -99,9 +90,7 @@ fn main() {
                     for yy in 0..lb.ny {
                         for xx in 0..lb.nx {
                             let (x0, y0) = (lb.x_lo + xx as isize, lb.y_lo + yy as isize);
-                            let ov = |s: isize, l: usize, m: usize| {
-                                ((s + l as isize).min(m as isize) - s.max(0)).max(0) as usize
-                            };
+                            let ov = common::overlap;
                             let inside = ov(x0, v.cols, mw) * ov(y0, v.rows, mh);
                             if inside < min_inside {
                                 continue;
