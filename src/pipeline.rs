@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::model::Model;
 use crate::vision::detect::{
-    detection_masks, DenseBounds, DetectStats, Detector, Location, Region, Transfer,
+    detection_masks, DenseBounds, DetectParams, DetectStats, Detection, Detector, Location, Region,
+    Transfer,
 };
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{CompressedRle, Mask, Rle};
@@ -238,6 +239,7 @@ pub fn detect_prebuilt_with(
     let mut timing = Timing::default();
     let mut stats = DetectStats::default();
     let mut detections: Vec<DetectionJson> = Vec::new();
+    let mut scanned: Vec<Scanned> = Vec::new();
     let mut used = vec![false; pyramids.len()];
     let mut built_ms = 0.0;
     // One claim map per pyramid (models of other feature settings never
@@ -271,7 +273,7 @@ pub fn detect_prebuilt_with(
             built_ms += pyr.timing.total_ms;
         }
         let pre = bounds.get(mi).copied().flatten();
-        run_model(
+        scanned.push(scan_model(
             pyr,
             model,
             pre,
@@ -279,29 +281,48 @@ pub fn detect_prebuilt_with(
             transfers[idx].as_mut(),
             &mut timing,
             &mut stats,
-            &mut detections,
-        )?;
+        )?);
     }
+    // Every model's masks in one parallel batch, in model order.
+    let t = Instant::now();
+    let jobs: Vec<(&Scanned, &Detection)> = scanned
+        .iter()
+        .flat_map(|s| s.dets.iter().map(move |d| (s, d)))
+        .collect();
+    let made: Vec<Option<DetectionJson>> = jobs
+        .into_par_iter()
+        .map(|(s, d)| detection_json(s, d, opts))
+        .collect::<Result<_, _>>()?;
+    detections.extend(made.into_iter().flatten());
+    timing.masks += t.elapsed().as_secs_f64() * 1e3;
     let mut resp = finish(w, h, detections, timing, stats, opts, start);
     resp.timing_ms.total += built_ms;
     Ok(resp)
 }
 
-/// One model's scan and masks, appended to `detections`; with a
-/// `transfer`, the scan sees the cells earlier models claimed, and this
-/// model's best detection at or above its own threshold claims its visible
-/// cells, with its mean object response per visible cell.
-#[allow(clippy::too_many_arguments)]
-fn run_model(
-    pyr: &FeaturePyramid,
-    model: &Model,
+/// One model's detections, before their masks.
+struct Scanned<'a> {
+    pyr: &'a FeaturePyramid,
+    model: &'a Model,
+    params: DetectParams,
+    dets: Vec<Detection>,
+    /// The image's colours, for the colour agreement of models that use it.
+    image_colours: Option<Vec<f32>>,
+}
+
+/// One model's scan; with a `transfer`, the scan sees the cells earlier
+/// models claimed, and this model's best detection at or above its own
+/// threshold claims its visible cells, with its mean object response per
+/// visible cell.
+fn scan_model<'a>(
+    pyr: &'a FeaturePyramid,
+    model: &'a Model,
     pre: Option<&DenseBounds>,
     opts: &DetectOptions,
     transfer: Option<&mut Transfer>,
     timing: &mut Timing,
     stats: &mut DetectStats,
-    detections: &mut Vec<DetectionJson>,
-) -> Result<(), VisionError> {
+) -> Result<Scanned<'a>, VisionError> {
     let m = &model.meta;
     let mut params = m.detection;
     if let Some(t) = opts.threshold {
@@ -356,65 +377,72 @@ fn run_model(
     stats.min_cuts += s.min_cuts;
     timing.responses += s.responses_ms;
     timing.mincut += s.mincut_ms;
-    let t = Instant::now();
-    // The image's colours, for the colour agreement of models that use it.
     let image_colours = (params.colour_weight > 0.0).then(|| image_colours(&pyr.image));
-    // Each detection's masks on their own: in parallel, in order.
-    let made: Vec<Option<DetectionJson>> = dets
-        .into_par_iter()
-        .map(|d| -> Result<Option<DetectionJson>, VisionError> {
-            if opts.deadline.passed() {
-                return Err(VisionError::DeadlineExceeded);
-            }
-            let label = &m.viewpoints[d.viewpoint].label;
-            if opts.label.as_ref().is_some_and(|l| l != label) {
-                return Ok(None);
-            }
-            let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
-            let mut score = d.score;
-            let object_colours = shape.and_then(|s| s.colours.as_ref());
-            let masks = match (&image_colours, object_colours) {
-                (Some(ic), Some(oc)) => {
-                    let (raw, refined) = detection_masks(&d, pyr, &params.refine, shape);
-                    score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
-                    Some((raw, refined))
-                }
-                _ => None,
-            };
-            let (raw, refined) = if opts.masks == MaskMode::None {
-                (None, None)
-            } else {
-                let (raw, refined) =
-                    masks.unwrap_or_else(|| detection_masks(&d, pyr, &params.refine, shape));
-                let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
-                let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
-                (
-                    want_raw.then(|| raw.to_rle()),
-                    want_refined.then(|| refined.to_rle()),
-                )
-            };
-            Ok(Some(DetectionJson {
-                label: label.clone(),
-                model: m.name.clone(),
-                score,
-                bbox: BoxJson {
-                    x: d.bbox.0,
-                    y: d.bbox.1,
-                    width: d.bbox.2,
-                    height: d.bbox.3,
-                },
-                viewpoint: d.viewpoint,
-                level: d.level,
-                visible_fraction: d.visible_fraction,
-                truncated: d.truncated,
-                mask: refined,
-                raw_mask: raw,
-            }))
-        })
-        .collect::<Result<_, _>>()?;
-    detections.extend(made.into_iter().flatten());
-    timing.masks += t.elapsed().as_secs_f64() * 1e3;
-    Ok(())
+    Ok(Scanned {
+        pyr,
+        model,
+        params,
+        dets,
+        image_colours,
+    })
+}
+
+/// A detection's answer with its masks (and its colour agreement where the
+/// model weighs it); `None` for another label than the one asked.
+fn detection_json(
+    s: &Scanned,
+    d: &Detection,
+    opts: &DetectOptions,
+) -> Result<Option<DetectionJson>, VisionError> {
+    let (pyr, model, params) = (s.pyr, s.model, &s.params);
+    let m = &model.meta;
+    if opts.deadline.passed() {
+        return Err(VisionError::DeadlineExceeded);
+    }
+    let label = &m.viewpoints[d.viewpoint].label;
+    if opts.label.as_ref().is_some_and(|l| l != label) {
+        return Ok(None);
+    }
+    let shape = model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+    let mut score = d.score;
+    let object_colours = shape.and_then(|s| s.colours.as_ref());
+    let masks = match (&s.image_colours, object_colours) {
+        (Some(ic), Some(oc)) => {
+            let (raw, refined) = detection_masks(d, pyr, &params.refine, shape);
+            score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
+            Some((raw, refined))
+        }
+        _ => None,
+    };
+    let (raw, refined) = if opts.masks == MaskMode::None {
+        (None, None)
+    } else {
+        let (raw, refined) =
+            masks.unwrap_or_else(|| detection_masks(d, pyr, &params.refine, shape));
+        let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
+        let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
+        (
+            want_raw.then(|| raw.to_rle()),
+            want_refined.then(|| refined.to_rle()),
+        )
+    };
+    Ok(Some(DetectionJson {
+        label: label.clone(),
+        model: m.name.clone(),
+        score,
+        bbox: BoxJson {
+            x: d.bbox.0,
+            y: d.bbox.1,
+            width: d.bbox.2,
+            height: d.bbox.3,
+        },
+        viewpoint: d.viewpoint,
+        level: d.level,
+        visible_fraction: d.visible_fraction,
+        truncated: d.truncated,
+        mask: refined,
+        raw_mask: raw,
+    }))
 }
 
 fn finish(
