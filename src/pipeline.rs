@@ -9,9 +9,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::model::Model;
 use crate::vision::detect::{
-    detection_masks, DenseBounds, DetectParams, DetectStats, Detection, Detector, Location, Region,
-    Transfer,
+    detection_masks, DenseBounds, DetectParams, DetectStats, Detection, Detector, Location,
+    PlanarMaps, Region, Transfer,
 };
+use crate::vision::energy::ViewWeights;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::{CompressedRle, Mask, Rle};
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
@@ -248,17 +249,43 @@ pub fn detect_prebuilt_with(
         .iter()
         .map(|p| (opts.transfer && models.len() > 1).then(|| Transfer::new(p)))
         .collect();
+    // The pyramid of each model.
+    let of_model: Vec<usize> = models
+        .iter()
+        .map(|model| {
+            let m = &model.meta;
+            pyramids
+                .iter()
+                .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
+                .ok_or_else(|| {
+                    VisionError::InvalidParameter(format!(
+                        "model {} needs other pyramid settings than the image's",
+                        m.name
+                    ))
+                })
+        })
+        .collect::<Result<_, _>>()?;
+    // Stage 1's feature planes, once per pyramid that several models scan
+    // with bounds of their own.
+    let t = Instant::now();
+    let shared: Vec<Option<PlanarMaps>> = pyramids
+        .iter()
+        .enumerate()
+        .map(|(idx, pyr)| {
+            let views: Vec<&[ViewWeights]> = models
+                .iter()
+                .enumerate()
+                .filter(|&(mi, _)| {
+                    of_model[mi] == idx && bounds.get(mi).copied().flatten().is_none()
+                })
+                .map(|(_, model)| model.views.as_slice())
+                .collect();
+            (opts.prune && views.len() > 1).then(|| PlanarMaps::new(pyr, &views))
+        })
+        .collect();
+    timing.responses += t.elapsed().as_secs_f64() * 1e3;
     for (mi, model) in models.iter().enumerate() {
-        let m = &model.meta;
-        let idx = pyramids
-            .iter()
-            .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
-            .ok_or_else(|| {
-                VisionError::InvalidParameter(format!(
-                    "model {} needs other pyramid settings than the image's",
-                    m.name
-                ))
-            })?;
+        let idx = of_model[mi];
         let pyr = pyramids[idx];
         if (pyr.image_width, pyr.image_height) != (w, h) {
             return Err(VisionError::InvalidParameter(
@@ -277,6 +304,7 @@ pub fn detect_prebuilt_with(
             pyr,
             model,
             pre,
+            shared[idx].as_ref(),
             opts,
             transfers[idx].as_mut(),
             &mut timing,
@@ -314,10 +342,12 @@ struct Scanned<'a> {
 /// models claimed, and this model's best detection at or above its own
 /// threshold claims its visible cells, with its mean object response per
 /// visible cell.
+#[allow(clippy::too_many_arguments)]
 fn scan_model<'a>(
     pyr: &'a FeaturePyramid,
     model: &'a Model,
     pre: Option<&DenseBounds>,
+    maps: Option<&PlanarMaps>,
     opts: &DetectOptions,
     transfer: Option<&mut Transfer>,
     timing: &mut Timing,
@@ -343,7 +373,10 @@ fn scan_model<'a>(
         .iter()
         .map(|v| labels.iter().position(|l| *l == v.label).unwrap_or(0))
         .collect();
-    let detector = Detector::new(&model.views)?.with_groups(groups)?;
+    let mut detector = Detector::new(&model.views)?.with_groups(groups)?;
+    if let Some(maps) = maps {
+        detector = detector.with_maps(maps);
+    }
     let (dets, s) = match transfer.as_deref() {
         Some(t) => detector
             .with_transfer(t)

@@ -4,7 +4,8 @@ use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use sdhop::train::ko8::above_threshold;
-use sdhop::vision::detect::{box_iou, DetectParams, Detector, Region, Transfer};
+use sdhop::vision::detect::{box_iou, DetectParams, Detector, PlanarMaps, Region, Transfer};
+use sdhop::vision::energy::ViewWeights;
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::mask::Mask;
 use sdhop::vision::pyramid::FeaturePyramid;
@@ -476,6 +477,51 @@ fn grouped_viewpoints_detect_as_separate_models_and_pruning_stays_exact() {
                 assert!(mine.len() <= max_detections);
                 assert_eq!(mine, own, "group {g}, threshold {threshold}");
             }
+        }
+    }
+}
+
+/// Feature planes built once with the padding of a larger template (as for
+/// several models) give the very detections and bounds of the detector's
+/// own; planes of another pyramid are not used.
+#[test]
+fn shared_feature_planes_change_nothing() {
+    let (model, scenes) = scanned_scenes(3);
+    let v = &model.views[0];
+    let larger = [ViewWeights::zeros(
+        v.rows + 3,
+        v.cols + 5,
+        v.w_hop.len() - 1,
+    )];
+    let t0 = model.meta.detection.threshold;
+    for (i, (_, pyr)) in scenes.iter().enumerate() {
+        let maps = PlanarMaps::new(pyr, &[&model.views, &larger]);
+        let other = &scenes[(i + 1) % scenes.len()].1;
+        let foreign = PlanarMaps::new(other, &[&model.views, &larger]);
+        for (threshold, max_detections) in [(t0, 5), (t0 - 2.0, 20)] {
+            let p = DetectParams {
+                max_detections,
+                threshold,
+                ..model.meta.detection
+            };
+            let own = Detector::new(&model.views)
+                .unwrap()
+                .detect(pyr, &p)
+                .unwrap();
+            let shared = Detector::new(&model.views)
+                .unwrap()
+                .with_maps(&maps)
+                .detect(pyr, &p)
+                .unwrap();
+            let wrong = Detector::new(&model.views)
+                .unwrap()
+                .with_maps(&foreign)
+                .detect(pyr, &p)
+                .unwrap();
+            assert_eq!(own.0, shared.0);
+            assert_eq!(own.1.min_cuts, shared.1.min_cuts);
+            assert_eq!(own.1.pruned_stage1, shared.1.pruned_stage1);
+            assert_eq!(own.0, wrong.0);
         }
     }
 }

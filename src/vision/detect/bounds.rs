@@ -143,6 +143,45 @@ impl PlanarMap {
     }
 }
 
+/// Stage 1's feature planes of every level of one pyramid, padded for the
+/// largest template of several models, so that the models scanning the
+/// pyramid share them instead of each building its own (the padding only
+/// adds zeros: the bounds are the same).
+pub struct PlanarMaps<'p> {
+    pyr: &'p FeaturePyramid,
+    pad_x: usize,
+    pad_y: usize,
+    pub(super) maps: Vec<PlanarMap>,
+}
+
+impl<'p> PlanarMaps<'p> {
+    /// The planes of `pyr` for templates of the given viewpoints.
+    pub fn new(pyr: &'p FeaturePyramid, views: &[&[ViewWeights]]) -> Self {
+        let all = || views.iter().flat_map(|v| v.iter());
+        let pad_x = all().map(|v| v.cols).max().unwrap_or(0);
+        let pad_y = all().map(|v| v.rows).max().unwrap_or(0);
+        let maps = pyr
+            .levels
+            .par_iter()
+            .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
+            .collect();
+        Self {
+            pyr,
+            pad_x,
+            pad_y,
+            maps,
+        }
+    }
+
+    /// Whether these are `pyr`'s planes with at least this padding.
+    pub(super) fn serves(&self, pyr: &FeaturePyramid, pad_x: usize, pad_y: usize) -> bool {
+        std::ptr::eq(self.pyr, pyr)
+            && self.pad_x >= pad_x
+            && self.pad_y >= pad_y
+            && self.maps.len() == pyr.levels.len()
+    }
+}
+
 /// Scratch of the dense bound: the column chains' states and the sums
 /// along one output row of positions.
 #[derive(Default)]

@@ -42,6 +42,7 @@ use super::pyramid::{FeaturePyramid, Level};
 use super::refine::refine_pixels;
 use super::shape::ShapeModel;
 use super::{Deadline, VisionError};
+pub use bounds::PlanarMaps;
 pub use bounds::{
     chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
 };
@@ -274,6 +275,8 @@ pub struct Detector<'a> {
     /// The group (object) of each viewpoint: non-maximum suppression and
     /// `max_detections` apply within a group (all 0: one object).
     groups: Vec<usize>,
+    /// Stage 1's feature planes, built once for several models.
+    maps: Option<&'a PlanarMaps<'a>>,
 }
 
 impl<'a> Detector<'a> {
@@ -298,6 +301,7 @@ impl<'a> Detector<'a> {
             views,
             transfer: None,
             groups,
+            maps: None,
         })
     }
 
@@ -326,6 +330,15 @@ impl<'a> Detector<'a> {
     /// transfer, see [`Transfer`]).
     pub fn with_transfer(mut self, transfer: &'a Transfer) -> Self {
         self.transfer = (!transfer.is_empty()).then_some(transfer);
+        self
+    }
+
+    /// The detector reading stage 1's feature planes from `maps` (built once
+    /// for every model scanning the pyramid) where they were built from the
+    /// same pyramid with enough padding for its templates; otherwise it
+    /// builds its own. The bounds are the same either way.
+    pub fn with_maps(mut self, maps: &'a PlanarMaps<'a>) -> Self {
+        self.maps = Some(maps);
         self
     }
 
@@ -448,13 +461,21 @@ impl<'a> Detector<'a> {
         let t = Instant::now();
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
         let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
-        let maps: Vec<PlanarMap> = if params.prune && pre.is_none() {
-            pyr.levels
-                .par_iter()
-                .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
-                .collect()
+        let own: Vec<PlanarMap>;
+        let maps: &[PlanarMap] = if params.prune && pre.is_none() {
+            match self.maps.filter(|m| m.serves(pyr, pad_x, pad_y)) {
+                Some(m) => &m.maps,
+                None => {
+                    own = pyr
+                        .levels
+                        .par_iter()
+                        .map(|l| PlanarMap::new(&l.hog, pad_x, pad_y))
+                        .collect();
+                    &own
+                }
+            }
         } else {
-            Vec::new()
+            &[]
         };
         let counters: Vec<CliqueCounter> = if params.prune {
             pyr.levels
