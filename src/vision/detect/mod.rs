@@ -42,9 +42,9 @@ use super::pyramid::{FeaturePyramid, Level};
 use super::refine::refine_pixels;
 use super::shape::ShapeModel;
 use super::{Deadline, VisionError};
-pub use bounds::PlanarMaps;
 pub use bounds::{
     chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
+    PlanarMaps,
 };
 use bounds::{overlap, positions, CliqueCounter, PlanarMap};
 pub use transfer::Transfer;
@@ -239,7 +239,7 @@ pub struct Augmented {
     pub value: f64,
 }
 
-/// A detection whose survival of the greedy suppression is final:
+/// A detection that survives the greedy suppression among those solved:
 /// `(group, energy, pixel box)`.
 type Settled = (usize, f64, (f64, f64, f64, f64));
 
@@ -620,23 +620,33 @@ impl<'a> Detector<'a> {
                     solved.push(r);
                 }
             }
-            if ranked && !single && solved.len() >= params.max_detections {
+            let rank = ranked && !single && solved.len() >= params.max_detections;
+            if rank || suppress_unsolved {
                 sort_solved(&mut solved);
-                for (g, b) in best.iter_mut().enumerate() {
-                    if let Some(e) = self.kth_energy(pyr, &solved, params, g) {
-                        *b = b.min(e);
+                let survivors = self.survivors(pyr, &solved, params);
+                if rank {
+                    // The energy of each group's last of `max_detections`
+                    // survivors, if that many survive.
+                    for (g, b) in best.iter_mut().enumerate() {
+                        let kth = params
+                            .max_detections
+                            .checked_sub(1)
+                            .and_then(|k| survivors.iter().filter(|s| s.0 == g).nth(k));
+                        if let Some(&(_, e, _)) = kth {
+                            *b = b.min(e);
+                        }
                     }
                 }
-            }
-            if suppress_unsolved {
-                // Every later location has an energy of at least `floor`
-                // (the blocks are in order of the bound, and the bound minus
-                // its margin grows with the bound).
-                let floor = cands
-                    .get((bi + 1) * chunk)
-                    .map_or(f64::INFINITY, |c| c.bound - margin(c.bound));
-                sort_solved(&mut solved);
-                settled = self.settled(pyr, &solved, params, floor);
+                if suppress_unsolved {
+                    // Every later location has an energy of at least
+                    // `floor` (the blocks are in order of the bound, and the
+                    // bound minus its margin grows with the bound); a
+                    // survivor below it keeps its place whatever comes.
+                    let floor = cands
+                        .get((bi + 1) * chunk)
+                        .map_or(f64::INFINITY, |c| c.bound - margin(c.bound));
+                    settled = survivors.into_iter().take_while(|s| s.1 < floor).collect();
+                }
             }
         }
         stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
@@ -644,19 +654,17 @@ impl<'a> Detector<'a> {
         (solved, stats)
     }
 
-    /// The detections of `solved` (sorted) that survive greedy
-    /// non-maximum suppression within their group and whose energy is below
-    /// `floor`, the least energy any unsolved location can have: their
-    /// survival is then final. As `(group, energy, pixel box)`.
-    fn settled(
+    /// The detections of `solved` (sorted) that survive greedy non-maximum
+    /// suppression within their group, in order, as `(group, energy, pixel
+    /// box)`. Whether one survives depends only on those before it.
+    fn survivors(
         &self,
         pyr: &FeaturePyramid,
         solved: &[Solved],
         params: &DetectParams,
-        floor: f64,
     ) -> Vec<Settled> {
         let mut kept: Vec<Settled> = Vec::new();
-        for s in solved.iter().take_while(|s| s.energy < floor) {
+        for s in solved {
             let g = self.groups[s.cand.view];
             let b = self.grid(pyr, &s.cand.location()).pixel_box();
             if kept
@@ -668,30 +676,6 @@ impl<'a> Detector<'a> {
             kept.push((g, s.energy, b));
         }
         kept
-    }
-
-    /// The energy of the last of `max_detections` detections of `group`
-    /// that survive greedy non-maximum suppression among `solved` (sorted),
-    /// if that many survive.
-    fn kth_energy(
-        &self,
-        pyr: &FeaturePyramid,
-        solved: &[Solved],
-        params: &DetectParams,
-        group: usize,
-    ) -> Option<f64> {
-        let mut kept: Vec<(f64, f64, f64, f64)> = Vec::new();
-        for s in solved.iter().filter(|s| self.groups[s.cand.view] == group) {
-            let b = self.grid(pyr, &s.cand.location()).pixel_box();
-            if kept.iter().any(|k| box_iou(*k, b) > params.nms_iou) {
-                continue;
-            }
-            kept.push(b);
-            if kept.len() == params.max_detections {
-                return Some(s.energy);
-            }
-        }
-        None
     }
 
     /// Sorts by score (ties in a fixed order), converts to image boxes and
