@@ -1,15 +1,29 @@
-//! Triangle meshes: OBJ (tobj) and PLY (ply-rs-bw, ASCII and binary)
-//! readers with validation, writers for tests, and the generated meshes of
-//! the pose benchmark (a box and a rounded cylinder).
-
-use std::io::BufReader;
+//! Triangle meshes: their limits and validation, writers for tests, and
+//! the generated meshes of the pose benchmark (a box and a rounded
+//! cylinder). Reading a file is [`super::mesh_file`].
 
 use nalgebra::Vector3;
 
 use super::PoseError;
 
-/// Most vertices or triangles a mesh may have.
+/// Most vertices or triangles a mesh read by the offline tools may have.
 pub const MAX_MESH_ELEMENTS: usize = 5_000_000;
+
+/// How large a mesh may be: checked against the counts a file declares
+/// before anything is allocated for them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MeshLimits {
+    pub max_vertices: usize,
+    pub max_triangles: usize,
+}
+
+impl MeshLimits {
+    /// The offline tools' limits ([`MAX_MESH_ELEMENTS`] of each).
+    pub const OFFLINE: MeshLimits = MeshLimits {
+        max_vertices: MAX_MESH_ELEMENTS,
+        max_triangles: MAX_MESH_ELEMENTS,
+    };
+}
 
 /// A triangle mesh in the client's units.
 #[derive(Clone, Debug, PartialEq)]
@@ -24,12 +38,15 @@ fn bad(msg: impl Into<String>) -> PoseError {
 
 impl Mesh {
     /// Checks the mesh: some triangles, finite coordinates, valid indices,
-    /// at most [`MAX_MESH_ELEMENTS`] of each.
-    pub fn validate(&self) -> Result<(), PoseError> {
-        if self.vertices.len() > MAX_MESH_ELEMENTS || self.triangles.len() > MAX_MESH_ELEMENTS {
+    /// within `limits`.
+    pub fn validate_within(&self, limits: &MeshLimits) -> Result<(), PoseError> {
+        if self.vertices.len() > limits.max_vertices || self.triangles.len() > limits.max_triangles
+        {
             return Err(PoseError::MeshTooLarge {
                 vertices: self.vertices.len(),
                 triangles: self.triangles.len(),
+                max_vertices: limits.max_vertices,
+                max_triangles: limits.max_triangles,
             });
         }
         if self.triangles.is_empty() {
@@ -55,167 +72,9 @@ impl Mesh {
         Ok(())
     }
 
-    /// Reads an OBJ or PLY file (PLY when it starts with `ply`), then
-    /// validates it.
-    pub fn parse(bytes: &[u8]) -> Result<Self, PoseError> {
-        let mesh = if bytes.starts_with(b"ply") {
-            Self::from_ply(bytes)?
-        } else {
-            Self::from_obj(bytes)?
-        };
-        mesh.validate()?;
-        Ok(mesh)
-    }
-
-    /// Reads a Wavefront OBJ (polygons are triangulated; materials ignored).
-    pub fn from_obj(bytes: &[u8]) -> Result<Self, PoseError> {
-        let opts = tobj::LoadOptions {
-            single_index: true,
-            triangulate: true,
-            ..Default::default()
-        };
-        let mut reader = BufReader::new(bytes);
-        let (models, _) =
-            tobj::load_obj_buf(&mut reader, &opts, |_| Ok((Vec::new(), Default::default())))
-                .map_err(|e| bad(format!("OBJ: {e}")))?;
-        let mut mesh = Mesh {
-            vertices: Vec::new(),
-            triangles: Vec::new(),
-        };
-        for m in models {
-            let base = mesh.vertices.len();
-            let pos = &m.mesh.positions;
-            if pos.len() % 3 != 0 {
-                return Err(bad("OBJ: positions are not triples"));
-            }
-            mesh.vertices.extend(
-                pos.chunks_exact(3)
-                    .map(|c| Vector3::new(f64::from(c[0]), f64::from(c[1]), f64::from(c[2]))),
-            );
-            if mesh.vertices.len() > MAX_MESH_ELEMENTS {
-                return Err(PoseError::MeshTooLarge {
-                    vertices: mesh.vertices.len(),
-                    triangles: mesh.triangles.len(),
-                });
-            }
-            for t in m.mesh.indices.chunks_exact(3) {
-                let idx = |i: u32| -> Result<u32, PoseError> {
-                    u32::try_from(base + i as usize).map_err(|_| bad("OBJ: too many vertices"))
-                };
-                mesh.triangles.push([idx(t[0])?, idx(t[1])?, idx(t[2])?]);
-            }
-        }
-        Ok(mesh)
-    }
-
-    /// Reads a PLY (ASCII or binary): `vertex` x, y, z and `face`
-    /// `vertex_indices` (or `vertex_index`) lists, polygons fanned into
-    /// triangles.
-    pub fn from_ply(bytes: &[u8]) -> Result<Self, PoseError> {
-        use ply_rs_bw::parser::Parser;
-        use ply_rs_bw::ply::{DefaultElement, Property};
-        let parser = Parser::<DefaultElement>::new();
-        let mut reader = BufReader::new(bytes);
-        let ply = parser
-            .read_ply(&mut reader)
-            .map_err(|e| bad(format!("PLY: {e}")))?;
-        let num = |p: Option<&Property>, what: &str| -> Result<f64, PoseError> {
-            Ok(match p {
-                Some(Property::Float(v)) => f64::from(*v),
-                Some(Property::Double(v)) => *v,
-                Some(Property::Char(v)) => f64::from(*v),
-                Some(Property::UChar(v)) => f64::from(*v),
-                Some(Property::Short(v)) => f64::from(*v),
-                Some(Property::UShort(v)) => f64::from(*v),
-                Some(Property::Int(v)) => f64::from(*v),
-                Some(Property::UInt(v)) => f64::from(*v),
-                _ => return Err(bad(format!("PLY: vertex without a numeric {what}"))),
-            })
-        };
-        let vertices = ply
-            .payload
-            .get("vertex")
-            .ok_or_else(|| bad("PLY: no vertex element"))?
-            .iter()
-            .map(|v| {
-                Ok(Vector3::new(
-                    num(v.get("x"), "x")?,
-                    num(v.get("y"), "y")?,
-                    num(v.get("z"), "z")?,
-                ))
-            })
-            .collect::<Result<Vec<_>, PoseError>>()?;
-        let mut triangles = Vec::new();
-        let faces = ply
-            .payload
-            .get("face")
-            .ok_or_else(|| bad("PLY: no face element"))?;
-        for (fi, f) in faces.iter().enumerate() {
-            let list = f.get("vertex_indices").or_else(|| f.get("vertex_index"));
-            let idx: Vec<i64> = match list {
-                Some(Property::ListInt(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                Some(Property::ListUInt(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                Some(Property::ListShort(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                Some(Property::ListUShort(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                Some(Property::ListChar(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                Some(Property::ListUChar(v)) => v.iter().map(|&i| i64::from(i)).collect(),
-                _ => return Err(bad(format!("PLY: face {fi} has no integer vertex_indices"))),
-            };
-            if idx.len() < 3 {
-                return Err(bad(format!("PLY: face {fi} has {} vertices", idx.len())));
-            }
-            let as_u32 =
-                |i: i64| u32::try_from(i).map_err(|_| bad(format!("PLY: face {fi} has index {i}")));
-            for k in 1..idx.len() - 1 {
-                triangles.push([as_u32(idx[0])?, as_u32(idx[k])?, as_u32(idx[k + 1])?]);
-            }
-            if triangles.len() > MAX_MESH_ELEMENTS {
-                return Err(PoseError::MeshTooLarge {
-                    vertices: vertices.len(),
-                    triangles: triangles.len(),
-                });
-            }
-        }
-        Ok(Mesh {
-            vertices,
-            triangles,
-        })
-    }
-
-    /// The vertex colours of a PLY file (`red`, `green`, `blue`, 0-255 as
-    /// integers or 0-1 as floats), `None` when the vertices have none.
-    pub fn ply_vertex_colours(bytes: &[u8]) -> Result<Option<Vec<[f32; 3]>>, PoseError> {
-        use ply_rs_bw::parser::Parser;
-        use ply_rs_bw::ply::{DefaultElement, Property};
-        if !bytes.starts_with(b"ply") {
-            return Ok(None);
-        }
-        let parser = Parser::<DefaultElement>::new();
-        let mut reader = BufReader::new(bytes);
-        let ply = parser
-            .read_ply(&mut reader)
-            .map_err(|e| bad(format!("PLY: {e}")))?;
-        let Some(vertices) = ply.payload.get("vertex") else {
-            return Ok(None);
-        };
-        let channel = |p: Option<&Property>| -> Option<f32> {
-            match p? {
-                Property::UChar(v) => Some(f32::from(*v)),
-                Property::UShort(v) => Some(f32::from(*v) / 257.0),
-                Property::Float(v) => Some(v.clamp(0.0, 1.0) * 255.0),
-                Property::Double(v) => Some((v.clamp(0.0, 1.0) * 255.0) as f32),
-                _ => None,
-            }
-        };
-        let mut out = Vec::with_capacity(vertices.len());
-        for v in vertices {
-            let rgb = ["red", "green", "blue"].map(|c| channel(v.get(c)));
-            match rgb {
-                [Some(r), Some(g), Some(b)] => out.push([r, g, b]),
-                _ => return Ok(None),
-            }
-        }
-        Ok(Some(out))
+    /// [`Self::validate_within`] the offline tools' limits.
+    pub fn validate(&self) -> Result<(), PoseError> {
+        self.validate_within(&MeshLimits::OFFLINE)
     }
 
     /// The mesh as OBJ text.
@@ -424,8 +283,8 @@ mod tests {
             Mesh::cuboid(0.1, 0.15, 0.08),
             Mesh::cylinder(0.04, 0.12, 24),
         ] {
-            // tobj renumbers vertices in order of first use: compare the
-            // triangles' corners.
+            // Compare the triangles' corners (the OBJ writer and reader
+            // keep the order, but a reader that renumbered would pass too).
             let corners = |m: &Mesh| -> Vec<Vector3<f64>> {
                 m.triangles
                     .iter()
