@@ -1,4 +1,4 @@
-//! Feasibility of a cheaper exact pre-filter for stage 1 (issue 22): as
+//! Feasibility of a cheaper exact pre-filter for stage 1 (the speed work): as
 //! HOG features are non-negative, every cell's best unary
 //! `min(v.h, o.h + r)` is at least `min(v, o).h + min(r, 0)` (elementwise
 //! minimum of the object and occlusion filters), so one correlation with a

@@ -1,4 +1,4 @@
-//! Feasibility of a cheaper exact stage-1 bound (issue 22): the chain bound
+//! Feasibility of a cheaper exact stage-1 bound (the speed work): the chain bound
 //! with each cell's filter responses replaced by their projection on the
 //! top `k` principal directions of the model's filter cells minus the
 //! Cauchy-Schwarz bound of the residual (`|w_res . h_res| <= |w_res| |h_res|`),

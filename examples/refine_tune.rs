@@ -16,8 +16,9 @@ use sdhop::model::Model;
 use sdhop::train::ko8::{fold_dir, Ko8Data, NegativeSet};
 use sdhop::train::learn_shapes;
 use sdhop::vision::detect::{DetectParams, Detector};
-use sdhop::vision::mask::{raw_mask, refine_mask, RefineParams};
+use sdhop::vision::mask::raw_mask;
 use sdhop::vision::pyramid::FeaturePyramid;
+use sdhop::vision::refine::{refine_mask, RefineParams};
 use sdhop::vision::refine::{refine_pixels, PixelRefine};
 
 fn parse(text: &str) -> Option<PixelRefine> {

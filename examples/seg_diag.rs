@@ -14,9 +14,10 @@ use sdhop::model::Model;
 use sdhop::train::ko8::Ko8Data;
 use sdhop::train::loss::{cell_truth, IntegralMask};
 use sdhop::vision::detect::{box_iou, DetectParams, Detector};
-use sdhop::vision::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
+use sdhop::vision::mask::{raw_mask, CellGrid, Mask};
 use sdhop::vision::maxflow::Graph;
 use sdhop::vision::pyramid::FeaturePyramid;
+use sdhop::vision::refine::{refine_mask, RefineParams};
 use sdhop::vision::segment::{segment, SegmentParams};
 
 fn err(m: &Mask, truth: &Mask) -> f64 {

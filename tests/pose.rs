@@ -135,6 +135,7 @@ fn the_start_prior_holds_what_the_edges_cannot_see() {
         let anchored = refine(&scene.image, &edges, &K, &start, None, &single).unwrap();
         let unanchored = IrlsParams {
             start_sigma_degrees: 0.0,
+            start_sigma_translation: Some(0.0),
             ..single
         };
         let drifting = refine(&scene.image, &edges, &K, &start, None, &unanchored).unwrap();
@@ -166,6 +167,7 @@ fn occluded_scenes_need_the_visibility_mask() {
     // good start and so hides part of what the mask does.
     let params = IrlsParams {
         start_sigma_degrees: 0.0,
+        start_sigma_translation: Some(0.0),
         ..IrlsParams::default()
     };
     let edges = EdgeModel::new(&mesh, params.crease_degrees);

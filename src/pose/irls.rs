@@ -15,245 +15,27 @@
 //! the same least squares, weighted by how sharp that step is. It stops
 //! when the pose no longer changes.
 //!
-//! Why one file of about 1100 lines: the edge search, the robust
-//! Gauss-Newton step, the restarts and their ranking share one `Context`
-//! (gradients, masks, the start pose) and are one algorithm; about 130
-//! lines are the tests beside them.
+//! The settings are in [`super::params`], the image's gradients and the
+//! edge search in [`super::search`], the distances to the mask in
+//! [`super::distance`]; here the robust Gauss-Newton step, the restarts
+//! and their ranking, which share one `Context`.
 
 use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
+use super::distance::MaskDistance;
 use super::edges::{EdgeModel, EdgeSample};
 use super::geometry::{Intrinsics, Pose};
+pub use super::params::{IrlsParams, START_SIGMA_DIAGONAL};
 use super::region::{outward, ColourModel};
+use super::search::{search, Gradients, Match, HYPOTHESES};
 use super::PoseError;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::Deadline;
 
-/// Settings of the refinement.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct IrlsParams {
-    /// Outer iterations (fresh correspondences) at most.
-    pub max_iterations: usize,
-    /// Gauss-Newton steps per set of correspondences.
-    pub inner_steps: usize,
-    /// Pixels between samples along a projected edge.
-    pub sample_step: f64,
-    /// Search range along the normal, in pixels each way, at the first
-    /// iteration; it shrinks by 30% per iteration down to a quarter of it
-    /// (coarse to fine: far edges pull early, near ones decide late).
-    pub search_range: f64,
-    /// Smallest gradient magnitude (0..255 intensity per pixel) of a match.
-    pub min_gradient: f64,
-    /// Largest angle (degrees) between an image gradient and the normal.
-    pub max_angle_degrees: f64,
-    /// Smallest dihedral angle (degrees) of a crease edge.
-    pub crease_degrees: f64,
-    /// Tukey constant, in robust standard deviations.
-    pub tukey_c: f64,
-    /// Converged when an iteration moves the model's points by less than
-    /// this in the image (pixels, at the object's depth).
-    pub tolerance_px: f64,
-    /// A Gauss-Newton step moves the model's points by at most this many
-    /// pixels (longer steps are shortened): a trust region.
-    pub max_step_px: f64,
-    /// OR-IRLS keeps a correspondence when its sample and its match lie
-    /// within this many pixels of the visibility mask (edges lie on the
-    /// mask's border).
-    pub mask_margin_px: usize,
-    /// Restarts turn the initial pose this many degrees (and multiples, see
-    /// `restart_rings`) either way about each camera axis (0: none); see
-    /// [`restart_poses`].
-    pub restart_degrees: f64,
-    /// Rings of turned restarts: at `restart_degrees`, twice that, ...
-    pub restart_rings: usize,
-    /// Restarts move the initial pose this share of its distance nearer
-    /// and farther (0: none).
-    pub restart_depth: f64,
-    /// The start pose's uncertainty as a MAP prior: standard deviation of
-    /// its rotation, degrees (0: no prior).
-    pub start_sigma_degrees: f64,
-    /// Standard deviation of its translation, in mesh units; `None`:
-    /// [`START_SIGMA_DIAGONAL`] of the diagonal of the mesh's bounding box.
-    #[serde(default)]
-    pub start_sigma_translation: Option<f64>,
-    /// Edge samples per independent measurement: neighbouring samples of
-    /// one outline share their errors (the same wrong edge), so the data
-    /// term's information is divided by this against the prior.
-    pub sample_correlation: f64,
-    /// Weight of the region (colour) evidence of the outline against the
-    /// edges (0: edges only); see [`super::region`].
-    #[serde(default = "default_region_weight")]
-    pub region_weight: f64,
-}
-
-fn default_region_weight() -> f64 {
-    IrlsParams::default().region_weight
-}
-
-impl Default for IrlsParams {
-    fn default() -> Self {
-        Self {
-            max_iterations: 30,
-            inner_steps: 3,
-            sample_step: 3.0,
-            search_range: 30.0,
-            min_gradient: 8.0,
-            max_angle_degrees: 30.0,
-            crease_degrees: 30.0,
-            tukey_c: 4.685,
-            tolerance_px: 0.5,
-            max_step_px: 4.0,
-            mask_margin_px: 3,
-            restart_degrees: 10.0,
-            restart_rings: 1,
-            restart_depth: 0.02,
-            start_sigma_degrees: 5.0,
-            start_sigma_translation: None,
-            sample_correlation: 8.0,
-            region_weight: 1.0,
-        }
-    }
-}
-
-impl IrlsParams {
-    pub fn validate(&self) -> Result<(), PoseError> {
-        let ok = self.max_iterations >= 1
-            && self.max_iterations <= 1000
-            && self.inner_steps >= 1
-            && self.sample_step.is_finite()
-            && self.sample_step >= 0.5
-            && self.search_range.is_finite()
-            && self.search_range > 0.0
-            && self.search_range <= MAX_RANGE as f64
-            && self.min_gradient.is_finite()
-            && (0.0..90.0).contains(&self.max_angle_degrees)
-            && (0.0..180.0).contains(&self.crease_degrees)
-            && self.tukey_c > 0.0
-            && self.tolerance_px > 0.0
-            && self.max_step_px > 0.0
-            && self.mask_margin_px <= 50
-            && (0.0..=45.0).contains(&self.restart_degrees)
-            && self.restart_rings <= 4
-            && (0.0..0.5).contains(&self.restart_depth)
-            && self.start_sigma_degrees.is_finite()
-            && self.start_sigma_degrees >= 0.0
-            && self
-                .start_sigma_translation
-                .is_none_or(|v| v.is_finite() && v > 0.0)
-            && self.sample_correlation.is_finite()
-            && self.sample_correlation >= 1.0
-            && self.region_weight.is_finite()
-            && self.region_weight >= 0.0;
-        if ok {
-            Ok(())
-        } else {
-            Err(PoseError::InvalidParameter(format!(
-                "invalid pose refinement settings {self:?}"
-            )))
-        }
-    }
-}
-
-/// A 3x3 binomial blur and then Sobel derivatives of one plane (each
-/// normalised to intensity per pixel).
-fn sobel(plane: &[f32], w: usize, h: usize) -> (Vec<f32>, Vec<f32>) {
-    let at = |v: &[f32], x: isize, y: isize| {
-        let x = x.clamp(0, w as isize - 1) as usize;
-        let y = y.clamp(0, h as isize - 1) as usize;
-        v[y * w + x]
-    };
-    let mut blur = vec![0.0f32; w * h];
-    for y in 0..h as isize {
-        for x in 0..w as isize {
-            let mut s = 0.0;
-            for (dy, wy) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
-                for (dx, wx) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
-                    s += wx * wy * at(plane, x + dx, y + dy);
-                }
-            }
-            blur[y as usize * w + x as usize] = s / 16.0;
-        }
-    }
-    let mut gx = vec![0.0f32; w * h];
-    let mut gy = vec![0.0f32; w * h];
-    for y in 0..h as isize {
-        for x in 0..w as isize {
-            let p = |dx, dy| at(&blur, x + dx, y + dy);
-            let i = y as usize * w + x as usize;
-            gx[i] = ((p(1, -1) + 2.0 * p(1, 0) + p(1, 1))
-                - (p(-1, -1) + 2.0 * p(-1, 0) + p(-1, 1)))
-                / 8.0;
-            gy[i] = ((p(-1, 1) + 2.0 * p(0, 1) + p(1, 1))
-                - (p(-1, -1) + 2.0 * p(0, -1) + p(1, -1)))
-                / 8.0;
-        }
-    }
-    (gx, gy)
-}
-
-/// Image gradients: per pixel the strongest colour channel's Sobel
-/// gradient, after a 3x3 binomial blur (see [`Gradients::new`]).
-pub struct Gradients {
-    width: usize,
-    height: usize,
-    gx: Vec<f32>,
-    gy: Vec<f32>,
-}
-
-impl Gradients {
-    /// The Sobel gradient of each colour channel (after a 3x3 binomial
-    /// blur), and at each pixel the channel whose gradient is the
-    /// strongest: an outline between two colours of equal brightness is
-    /// an edge, which the grey image does not show.
-    pub fn new(img: &ColorImage) -> Self {
-        let (w, h) = (img.width(), img.height());
-        let planes: Vec<(Vec<f32>, Vec<f32>)> = (0..3)
-            .map(|c| {
-                let plane: Vec<f32> = img.data().iter().skip(c).step_by(3).copied().collect();
-                sobel(&plane, w, h)
-            })
-            .collect();
-        let (gx, gy): (Vec<f32>, Vec<f32>) = (0..w * h)
-            .map(|i| {
-                let strength = |c: usize| planes[c].0[i].powi(2) + planes[c].1[i].powi(2);
-                let best = (1..3).fold(0, |b, c| if strength(c) > strength(b) { c } else { b });
-                (planes[best].0[i], planes[best].1[i])
-            })
-            .unzip();
-        Self {
-            width: w,
-            height: h,
-            gx,
-            gy,
-        }
-    }
-
-    /// The gradient at the pixel containing `p`, if inside the image.
-    fn at(&self, p: &Vector2<f64>) -> Option<Vector2<f64>> {
-        let i = pixel_index(p, self.width, self.height)?;
-        Some(Vector2::new(f64::from(self.gx[i]), f64::from(self.gy[i])))
-    }
-}
-
-/// The row-major index of the pixel containing `p` in a `width` x
-/// `height` grid, if inside it.
-fn pixel_index(p: &Vector2<f64>, width: usize, height: usize) -> Option<usize> {
-    if p.x < 0.0 || p.y < 0.0 {
-        return None;
-    }
-    let (x, y) = (p.x as usize, p.y as usize);
-    (x < width && y < height).then(|| y * width + x)
-}
-
 /// Tolerance (pixels) of the agreement that ranks the restarts.
 pub const AGREE_PX: f64 = 1.0;
-/// The default standard deviation of the start's translation, as a share
-/// of the diagonal of the mesh's bounding box (chosen on the LM-O
-/// development objects: 5%, 7% and 10% gave 7.18, 7.34 and 8.08 mm).
-pub const START_SIGMA_DIAGONAL: f64 = 0.05;
 /// How far (pixels each way) the evidence of a pose looks for an edge.
 const EVIDENCE_RANGE_PX: f64 = 8.0;
 /// Distance (pixels) at which an edge sample's squared distance stops
@@ -289,198 +71,6 @@ const REGION_TEMPER: f64 = 0.5;
 /// Width (pixels) of the band around the start pose's projection whose
 /// colours are the background's.
 const REGION_BAND_PX: usize = 20;
-
-/// The largest search range (pixels each way).
-const MAX_RANGE: usize = 200;
-
-/// Edge hypotheses kept per sample.
-const HYPOTHESES: usize = 3;
-
-/// A sample and its image matches: signed distances along the normal of
-/// the strongest compatible edges (the strongest first). Each Gauss-Newton
-/// step uses the one nearest to the model's current projection (multiple
-/// hypotheses, as Choi and Christensen): a strong edge of the clutter
-/// next to the object's own edge does not capture the sample for good.
-#[derive(Clone, Copy, Debug)]
-struct Match {
-    sample: EdgeSample,
-    /// Match position minus sample position, along the normal (pixels).
-    offsets: [f64; HYPOTHESES],
-    count: usize,
-}
-
-/// The gradient along the sample's normal at `t` pixels along it, where the
-/// gradient is strong enough and within the angle of the normal (else 0).
-fn edge_strength(g: &Gradients, s: &EdgeSample, p: &IrlsParams, cos_max: f64, t: f64) -> f64 {
-    match g.at(&(s.pixel + s.normal * t)) {
-        Some(v) => {
-            let along = v.dot(&s.normal).abs();
-            let m = v.norm();
-            if m >= p.min_gradient && along >= cos_max * m {
-                along
-            } else {
-                0.0
-            }
-        }
-        None => 0.0,
-    }
-}
-
-/// The sub-pixel offset (within half a pixel) of a peak of strength `v0`
-/// between neighbours `vm` and `vp`: the vertex of the parabola through
-/// the three (none where they do not curve down).
-fn subpixel(vm: f64, v0: f64, vp: f64) -> f64 {
-    let denom = vm - 2.0 * v0 + vp;
-    if denom < -1e-12 {
-        (0.5 * (vm - vp) / denom).clamp(-0.5, 0.5)
-    } else {
-        0.0
-    }
-}
-
-/// Searches along the sample's normal for the strongest compatible edges
-/// (local maxima of the gradient along the normal, up to [`HYPOTHESES`]),
-/// each with a parabolic sub-pixel refinement; ties go to the nearer one.
-fn search(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Option<([f64; HYPOTHESES], usize)> {
-    let range = p.search_range.round() as i64;
-    let cos_max = p.max_angle_degrees.to_radians().cos();
-    let strength = |t: f64| edge_strength(g, s, p, cos_max, t);
-    // The profile along the normal, on the stack (the range is at most
-    // MAX_RANGE: `IrlsParams::validate`).
-    let mut values = [0.0f64; 2 * MAX_RANGE + 3];
-    let n = (2 * range + 3) as usize;
-    for (i, v) in values[..n].iter_mut().enumerate() {
-        *v = strength((i as i64 - range - 1) as f64);
-    }
-    let at = |t: i64| values[(t + range + 1) as usize];
-    // The strongest local maxima, strongest first (nearer first among
-    // equals, then the earlier), kept by insertion.
-    let mut peaks = [(0.0f64, 0i64); HYPOTHESES];
-    let mut found = 0;
-    for t in -range..=range {
-        let v = at(t);
-        let peak = v > 0.0
-            && v >= at(t - 1)
-            && v >= at(t + 1)
-            && !(v == at(t - 1) && t > 0)
-            && !(v == at(t + 1) && t < 0);
-        if !peak {
-            continue;
-        }
-        let better = |q: &(f64, i64)| v > q.0 || (v == q.0 && t.abs() < q.1.abs());
-        // `found` never exceeds HYPOTHESES.
-        let Some(pos) = (0..found)
-            .find(|&i| better(&peaks[i]))
-            .or((found < HYPOTHESES).then_some(found))
-        else {
-            continue;
-        };
-        let last = found.min(HYPOTHESES - 1);
-        for i in (pos..last).rev() {
-            peaks[i + 1] = peaks[i];
-        }
-        peaks[pos] = (v, t);
-        found = (found + 1).min(HYPOTHESES);
-    }
-    if found == 0 {
-        return None;
-    }
-    // Only edges of comparable strength compete with the strongest.
-    let floor = 0.5 * peaks[0].0;
-    let peaks = &peaks[..peaks[..found].iter().take_while(|p| p.0 >= floor).count()];
-    let mut out = [0.0; HYPOTHESES];
-    let count = peaks.len();
-    for (o, &(v0, t)) in out.iter_mut().zip(peaks) {
-        *o = t as f64 + subpixel(at(t - 1), v0, at(t + 1));
-    }
-    Some((out, count))
-}
-
-/// The chessboard (L-infinity) distance of every pixel to the nearest pixel
-/// of a mask: a pixel lies in the mask grown by `r` (square neighbourhood)
-/// exactly when its distance is at most `r`. One map answers every growth
-/// the refinement asks (the search range shrinks, the margin stays).
-pub struct MaskDistance {
-    width: usize,
-    height: usize,
-    /// Saturates at `u16::MAX` (no mask pixel, or farther).
-    dist: Vec<u16>,
-}
-
-impl MaskDistance {
-    /// Two raster passes with unit steps to all 8 neighbours, which is
-    /// exact for the chessboard distance.
-    pub fn new(m: &Mask) -> Self {
-        let (w, h) = (m.width, m.height);
-        let mut d = vec![u16::MAX; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                if m.get(x, y) {
-                    d[y * w + x] = 0;
-                }
-            }
-        }
-        let step = |v: u16| v.saturating_add(1);
-        for y in 0..h {
-            for x in 0..w {
-                let i = y * w + x;
-                let mut v = d[i];
-                if x > 0 {
-                    v = v.min(step(d[i - 1]));
-                }
-                if y > 0 {
-                    v = v.min(step(d[i - w]));
-                    if x > 0 {
-                        v = v.min(step(d[i - w - 1]));
-                    }
-                    if x + 1 < w {
-                        v = v.min(step(d[i - w + 1]));
-                    }
-                }
-                d[i] = v;
-            }
-        }
-        for y in (0..h).rev() {
-            for x in (0..w).rev() {
-                let i = y * w + x;
-                let mut v = d[i];
-                if x + 1 < w {
-                    v = v.min(step(d[i + 1]));
-                }
-                if y + 1 < h {
-                    v = v.min(step(d[i + w]));
-                    if x + 1 < w {
-                        v = v.min(step(d[i + w + 1]));
-                    }
-                    if x > 0 {
-                        v = v.min(step(d[i + w - 1]));
-                    }
-                }
-                d[i] = v;
-            }
-        }
-        Self {
-            width: w,
-            height: h,
-            dist: d,
-        }
-    }
-
-    /// The distance of pixel `(x, y)` to the mask (saturated; outside
-    /// the grid: the largest).
-    pub fn distance(&self, x: usize, y: usize) -> usize {
-        if x < self.width && y < self.height {
-            usize::from(self.dist[y * self.width + x])
-        } else {
-            usize::MAX
-        }
-    }
-
-    /// Whether the pixel containing `p` lies in the mask grown by `r`.
-    pub fn within(&self, p: &Vector2<f64>, r: usize) -> bool {
-        pixel_index(p, self.width, self.height).is_some_and(|i| usize::from(self.dist[i]) <= r)
-    }
-}
 
 /// The residual (pixels along the normal from the projected model point to
 /// its match) and its derivative with respect to the twist at `pose`.
@@ -742,7 +332,7 @@ impl Context<'_> {
         // the colours widen the basin, the edges alone decide the last
         // iterations (with the colours to the end, the synthetic
         // benchmark's unoccluded rows lost precision and LM-O gained
-        // nothing; see the README).
+        // nothing; see docs/design.md).
         let finest = params.search_range / 4.0;
         let region_range = (range.round() as usize).clamp(REGION_RANGE_MIN, REGION_RANGE_MAX);
         let regions: Vec<(EdgeSample, f64, f64)> = match &self.colour {
@@ -941,6 +531,25 @@ pub fn restart_poses(initial: &Pose, degrees: f64, rings: usize, depth: f64) -> 
 /// `Context::map_cost`). The initial pose competes too: when no track
 /// beats it, it is answered (`start_kept`, not converged).
 ///
+/// The standard deviations (translation, rotation in radians) of the start
+/// prior; a part that is off is infinite (no weight), and with both off
+/// there is none.
+fn start_prior(params: &IrlsParams, edges: &EdgeModel) -> Option<(f64, f64)> {
+    let c = edges.box_corners();
+    let diagonal = (c[7] - c[0]).norm();
+    let sigma_t = match params.start_sigma_translation {
+        Some(v) if v <= 0.0 => f64::INFINITY,
+        Some(v) => v,
+        None => (START_SIGMA_DIAGONAL * diagonal).max(1e-12),
+    };
+    let sigma_r = if params.start_sigma_degrees > 0.0 {
+        params.start_sigma_degrees.to_radians()
+    } else {
+        f64::INFINITY
+    };
+    (sigma_t.is_finite() || sigma_r.is_finite()).then_some((sigma_t, sigma_r))
+}
+
 /// The start prior ([`IrlsParams::start_sigma_degrees`],
 /// [`IrlsParams::start_sigma_translation`]) also enters every Gauss-Newton
 /// step as a MAP term on the deviation from `initial`: on real
@@ -1000,17 +609,7 @@ pub fn refine_until(
         radius: edges.radius(),
         initial: *initial,
         deadline,
-        prior: (params.start_sigma_degrees > 0.0).then(|| {
-            let c = edges.box_corners();
-            let diagonal = (c[7] - c[0]).norm();
-            (
-                params
-                    .start_sigma_translation
-                    .unwrap_or(START_SIGMA_DIAGONAL * diagonal)
-                    .max(1e-12),
-                params.start_sigma_degrees.to_radians(),
-            )
-        }),
+        prior: start_prior(params, edges),
     };
     let new_track = |pose: Pose| Track {
         pose,
@@ -1116,60 +715,6 @@ pub fn refine_until(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vision::rng::SplitMix64;
-
-    /// The search by its definition: every local maximum, sorted by
-    /// strength (nearer, then earlier, first among equals), those under
-    /// half the strongest dropped, the first HYPOTHESES kept.
-    fn search_reference(g: &Gradients, s: &EdgeSample, p: &IrlsParams) -> Vec<f64> {
-        let range = p.search_range.round() as i64;
-        let cos_max = p.max_angle_degrees.to_radians().cos();
-        let strength = |t: i64| edge_strength(g, s, p, cos_max, t as f64);
-        let mut peaks: Vec<(f64, i64)> = (-range..=range)
-            .filter(|&t| {
-                let v = strength(t);
-                v > 0.0
-                    && v >= strength(t - 1)
-                    && v >= strength(t + 1)
-                    && !(v == strength(t - 1) && t > 0)
-                    && !(v == strength(t + 1) && t < 0)
-            })
-            .map(|t| (strength(t), t))
-            .collect();
-        peaks.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.abs().cmp(&b.1.abs())));
-        let floor = peaks.first().map_or(0.0, |p| 0.5 * p.0);
-        peaks
-            .iter()
-            .filter(|p| p.0 >= floor)
-            .take(HYPOTHESES)
-            .map(|&(v0, t)| t as f64 + subpixel(strength(t - 1), v0, strength(t + 1)))
-            .collect()
-    }
-
-    #[test]
-    fn an_outline_between_colours_of_equal_brightness_is_an_edge() {
-        // Red left, green right, both of grey level 40: the grey image has
-        // no edge there, the colour gradient does.
-        let (w, h) = (32, 16);
-        let data: Vec<f32> = (0..w * h)
-            .flat_map(|i| {
-                if i % w < w / 2 {
-                    [120.0, 0.0, 0.0]
-                } else {
-                    [0.0, 120.0, 0.0]
-                }
-            })
-            .collect();
-        let img = ColorImage::new(w, h, data).unwrap();
-        let g = Gradients::new(&img);
-        let at_edge = g.at(&Vector2::new(16.0, 8.0)).unwrap();
-        assert!(
-            at_edge.x.abs() > 20.0 && at_edge.y.abs() < 1e-3,
-            "{at_edge:?}"
-        );
-        let flat = g.at(&Vector2::new(4.0, 8.0)).unwrap();
-        assert!(flat.norm() < 1e-3, "{flat:?}");
-    }
 
     #[test]
     fn a_refinement_past_its_deadline_gives_up() {
@@ -1196,71 +741,26 @@ mod tests {
     }
 
     #[test]
-    fn search_keeps_the_strongest_peaks_as_defined() {
-        let mut rng = SplitMix64::new(17);
-        let (w, h) = (64, 48);
-        // Blocks of grey levels, noise only on the right half: exact
-        // block steps make peaks of equal strength (ties to order).
-        let data: Vec<f32> = (0..w * h)
-            .flat_map(|i| {
-                let (x, y) = (i % w, i / w);
-                let block = ((x / 5) * 31 + (y / 7) * 17) % 9;
-                let v = (block * 28) as f32;
-                [v, v, v].map(|c| (x, c))
-            })
-            .map(|(x, v)| {
-                if x >= w / 2 {
-                    v + (rng.next_f64() * 3.0) as f32
-                } else {
-                    v
-                }
-            })
-            .collect();
-        let g = Gradients::new(&ColorImage::new(w, h, data).unwrap());
-        let mut compared = 0;
-        for i in 0..400 {
-            let angle = rng.range_f64(0.0, std::f64::consts::TAU);
-            let s = EdgeSample {
-                point: Vector3::zeros(),
-                pixel: Vector2::new(rng.range_f64(0.0, w as f64), rng.range_f64(0.0, h as f64)),
-                normal: Vector2::new(angle.cos(), angle.sin()),
-            };
-            let p = IrlsParams {
-                search_range: [1.0, 3.0, 7.5, 30.0][i % 4],
-                ..IrlsParams::default()
-            };
-            let want = search_reference(&g, &s, &p);
-            let got = search(&g, &s, &p).map_or(Vec::new(), |(o, n)| o[..n].to_vec());
-            assert_eq!(got, want, "sample {s:?}, range {}", p.search_range);
-            compared += usize::from(want.len() > 1);
-        }
-        // Enough samples had several hypotheses to compare their order.
-        assert!(compared > 20, "{compared}");
-    }
-
-    #[test]
-    fn mask_distance_equals_the_square_neighbourhood_test() {
-        let mut rng = SplitMix64::new(3);
-        let (w, h) = (37, 23);
-        let mut m = Mask::new(w, h);
-        for _ in 0..12 {
-            m.set(rng.range_usize(0, w), rng.range_usize(0, h), true);
-        }
-        let d = MaskDistance::new(&m);
-        for r in [0, 1, 3, 30] {
-            for y in 0..h {
-                for x in 0..w {
-                    let near = (y.saturating_sub(r)..(y + r + 1).min(h)).any(|yy| {
-                        (x.saturating_sub(r)..(x + r + 1).min(w)).any(|xx| m.get(xx, yy))
-                    });
-                    let p = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
-                    assert_eq!(d.within(&p, r), near, "r {r}, ({x}, {y})");
-                }
-            }
-        }
-        // No mask pixel: nothing is near it.
-        let none = MaskDistance::new(&Mask::new(5, 4));
-        assert!(!none.within(&Vector2::new(1.0, 1.0), 1000));
-        assert!(!d.within(&Vector2::new(-0.5, 1.0), 1000));
+    fn each_part_of_the_start_prior_is_on_or_off_by_itself() {
+        let edges = EdgeModel::new(&crate::pose::Mesh::cuboid(0.3, 0.4, 1.2), 30.0);
+        let with = |degrees: f64, translation: Option<f64>| {
+            start_prior(
+                &IrlsParams {
+                    start_sigma_degrees: degrees,
+                    start_sigma_translation: translation,
+                    ..IrlsParams::default()
+                },
+                &edges,
+            )
+        };
+        // No rotation prior: the translation's stays (5% of the diagonal,
+        // 1.3 here); it used to switch both off.
+        let (t, r) = with(0.0, None).unwrap();
+        assert!((t - 0.065).abs() < 1e-9 && r.is_infinite(), "{t} {r}");
+        let (t, r) = with(5.0, Some(0.0)).unwrap();
+        assert!(t.is_infinite() && (r - 5f64.to_radians()).abs() < 1e-12);
+        assert!(with(0.0, Some(0.0)).is_none());
+        let (t, _) = with(5.0, Some(0.02)).unwrap();
+        assert_eq!(t, 0.02);
     }
 }

@@ -69,7 +69,7 @@ impl ColourModel {
                 }
             }
         }
-        let dist = super::irls::MaskDistance::new(&coverage);
+        let dist = super::distance::MaskDistance::new(&coverage);
         let n = BINS * BINS * BINS;
         let (mut fg, mut bg) = (vec![0u32; n], vec![0u32; n]);
         let (mut nf, mut nb) = (0usize, 0usize);

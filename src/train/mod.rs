@@ -18,13 +18,15 @@
 //! set and the QP hand-off are one algorithm whose state they share; the
 //! loss, the QP and the CMU_KO8 driver are already their own modules.
 
+pub mod cache;
 pub mod ko8;
+pub mod layout;
 pub mod loss;
 pub mod mesh;
 pub mod qp;
+mod search;
 
 use std::collections::HashMap;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -36,8 +38,8 @@ use thiserror::Error;
 use crate::data::{load_image, DatasetError, Sample};
 use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
 use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
-use crate::vision::energy::{joint_feature, joint_feature_len, PairwiseMode, ViewWeights};
-use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use crate::vision::energy::{joint_feature, PairwiseMode};
+use crate::vision::hog::CELL_SIZE;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
@@ -46,8 +48,11 @@ use crate::vision::segment::SegmentParams;
 use crate::vision::shape::{learn_colours, ShapeModel};
 use crate::vision::VisionError;
 
-use loss::{cell_truth, IntegralMask, LossKind, Truth, TruthLoss};
+use loss::{cell_truth, IntegralMask, LossKind};
 use qp::{Plane, WorkingSet};
+
+pub use cache::PyramidCache;
+pub use layout::{exact_concave, Layout, PLAIN_HOG_PRIOR};
 
 /// Errors of training.
 #[derive(Debug, Error)]
@@ -196,240 +201,6 @@ impl TrainParams {
         self.segmentation.validate()?;
         Ok(())
     }
-}
-
-/// A pyramid per image path, computed once and shared by every model.
-#[derive(Default)]
-pub struct PyramidCache {
-    map: std::sync::Mutex<HashMap<PathBuf, Arc<FeaturePyramid>>>,
-    /// Keep [`FeaturePyramid::lean`] pyramids.
-    lean: bool,
-}
-
-impl PyramidCache {
-    /// A cache of pyramids without their pixels ([`FeaturePyramid::lean`]):
-    /// enough for training, a quarter less memory; masks of detections in
-    /// them are the raw cell masks.
-    pub fn lean() -> Self {
-        Self {
-            lean: true,
-            ..Self::default()
-        }
-    }
-
-    /// Computes the missing pyramids in parallel.
-    pub fn fill(
-        &self,
-        samples: &[&Sample],
-        pyramid: &PyramidParams,
-        seg: &SegmentParams,
-        progress: &ProgressBar,
-    ) -> Result<(), TrainError> {
-        let missing: Vec<&PathBuf> = {
-            let map = self
-                .map
-                .lock()
-                .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
-            let mut seen = std::collections::HashSet::new();
-            samples
-                .iter()
-                .map(|s| &s.image)
-                .filter(|p| !map.contains_key(*p) && seen.insert(*p))
-                .collect()
-        };
-        progress.set_length(missing.len() as u64);
-        let built: Vec<(PathBuf, Arc<FeaturePyramid>)> = missing
-            .par_iter()
-            .map(|p| {
-                let img = load_image(p)?;
-                let mut pyr = FeaturePyramid::build(&img, pyramid, seg)?;
-                if self.lean {
-                    pyr = pyr.lean()?;
-                }
-                progress.inc(1);
-                Ok(((*p).clone(), Arc::new(pyr)))
-            })
-            .collect::<Result<_, TrainError>>()?;
-        let mut map = self
-            .map
-            .lock()
-            .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
-        map.extend(built);
-        Ok(())
-    }
-
-    /// Adds a pyramid built elsewhere (e.g. of a generated image).
-    pub fn insert(&self, path: PathBuf, pyr: FeaturePyramid) {
-        if let Ok(mut map) = self.map.lock() {
-            map.insert(path, Arc::new(pyr));
-        }
-    }
-
-    pub fn get(&self, path: &PathBuf) -> Option<Arc<FeaturePyramid>> {
-        self.map.lock().ok()?.get(path).cloned()
-    }
-}
-
-/// Positions of the blocks of one model's training vector.
-#[derive(Clone, Debug)]
-pub struct Layout {
-    /// `(rows, cols)` per viewpoint.
-    pub shapes: Vec<(usize, usize)>,
-    pub k: usize,
-    pub pair_mode: PairwiseMode,
-    /// False: the plain-HOG ablation (see [`TrainParams::occlusion`]).
-    pub occlusion: bool,
-    offsets: Vec<usize>,
-    pub len: usize,
-}
-
-impl Layout {
-    pub fn new(shapes: Vec<(usize, usize)>, k: usize, pair_mode: PairwiseMode) -> Self {
-        let mut offsets = Vec::new();
-        let mut len = 0;
-        for &(r, c) in &shapes {
-            offsets.push(len);
-            len += joint_feature_len(r * c, k);
-        }
-        Self {
-            shapes,
-            k,
-            pair_mode,
-            occlusion: true,
-            offsets,
-            len,
-        }
-    }
-
-    fn n(&self, view: usize) -> usize {
-        self.shapes[view].0 * self.shapes[view].1
-    }
-
-    /// Index of `W` of a viewpoint.
-    fn pair_index(&self, view: usize) -> usize {
-        let n = self.n(view);
-        self.offsets[view] + 2 * n * HOG_DIM + n + 1
-    }
-
-    /// Index of the first HOP parameter `a`; then `b`, then `c_1..c_{K-1}`.
-    fn hop_index(&self, view: usize) -> usize {
-        self.pair_index(view) + 1
-    }
-
-    /// The coordinates constrained to be non-negative: `W` and the HOP
-    /// curvatures `c_j` of every viewpoint.
-    pub fn nonneg(&self) -> Vec<usize> {
-        let mut out = Vec::new();
-        for v in 0..self.shapes.len() {
-            out.push(self.pair_index(v));
-            out.extend((2..=self.k).map(|j| self.hop_index(v) + j));
-        }
-        out
-    }
-
-    /// Writes a viewpoint's joint feature (HOP block in the training
-    /// parametrisation) into `out` with weight `scale`.
-    fn add_psi(
-        &self,
-        view: usize,
-        psi: &[f64],
-        scale: f64,
-        out: &mut [f64],
-        hop: bool,
-        pair: bool,
-    ) {
-        let o = self.offsets[view];
-        let h = self.hop_index(view) - o;
-        let k = self.k;
-        for (j, &v) in psi[..h].iter().enumerate() {
-            if j == self.pair_index(view) - o && !pair {
-                continue;
-            }
-            out[o + j] += scale * v;
-        }
-        if hop {
-            let theta = &psi[h..h + k + 1];
-            let sum: f64 = theta.iter().sum();
-            let first: f64 = theta.iter().enumerate().map(|(i, t)| i as f64 * t).sum();
-            out[o + h] += scale * sum;
-            out[o + h + 1] += scale * first;
-            for j in 1..k {
-                let cj: f64 = (j + 1..=k).map(|kk| (kk - j) as f64 * theta[kk]).sum();
-                out[o + h + 1 + j] -= scale * cj;
-            }
-        }
-        out[o + h + k + 1] += scale * psi[h + k + 1];
-    }
-
-    /// The detector weights of a training vector. `W >= 0` and
-    /// `D^2 w_HOP >= 0` hold exactly in the `f32` values.
-    pub fn to_views(&self, w: &[f64]) -> Vec<ViewWeights> {
-        (0..self.shapes.len())
-            .map(|v| {
-                let (rows, cols) = self.shapes[v];
-                let n = rows * cols;
-                let o = self.offsets[v];
-                let mut vw = ViewWeights::zeros(rows, cols, self.k);
-                vw.pair_mode = self.pair_mode;
-                for i in 0..n {
-                    for d in 0..HOG_DIM {
-                        vw.w_vis[i * HOG_STRIDE + d] = w[o + i * HOG_DIM + d] as f32;
-                        vw.w_occ[i * HOG_STRIDE + d] = w[o + (n + i) * HOG_DIM + d] as f32;
-                    }
-                    vw.w_prior[i] = w[o + 2 * n * HOG_DIM + i] as f32;
-                    if !self.occlusion {
-                        vw.w_prior[i] = PLAIN_HOG_PRIOR;
-                        for d in 0..HOG_DIM {
-                            vw.w_occ[i * HOG_STRIDE + d] = 0.0;
-                        }
-                    }
-                }
-                vw.w_trunc = w[o + 2 * n * HOG_DIM + n] as f32;
-                vw.w_pair = w[self.pair_index(v)].max(0.0) as f32;
-                let h = self.hop_index(v);
-                vw.w_hop = exact_concave(w[h], w[h + 1], &w[h + 2..h + 1 + self.k]);
-                vw.bias = w[h + self.k + 1] as f32;
-                vw
-            })
-            .collect()
-    }
-}
-
-/// The cost of labelling a cell occluded in a plain-HOG model (no
-/// occlusion reasoning): far above any filter response, so that every
-/// min-cut labels every cell visible.
-pub const PLAIN_HOG_PRIOR: f32 = 1e3;
-
-/// `w_k = a + b k - sum_{j<k} (k - j) c_j` for `k = 0..=K`, with `c_j`
-/// clamped at 0, as `f32` values whose curvature is exactly `c_j >= 0`:
-/// everything is rounded to a common power-of-two grid fine enough for
-/// 24-bit mantissas, then computed in integers.
-pub fn exact_concave(a: f64, b: f64, c: &[f64]) -> Vec<f32> {
-    let k = c.len() + 1;
-    let real: Vec<f64> = (0..=k)
-        .map(|kk| {
-            a + b * kk as f64
-                - (1..kk)
-                    .map(|j| (kk - j) as f64 * c[j - 1].max(0.0))
-                    .sum::<f64>()
-        })
-        .collect();
-    let big = real
-        .iter()
-        .chain([&a, &b])
-        .chain(c)
-        .fold(1e-30f64, |m, v| m.max(v.abs()));
-    // Every |value| / grid < 2^22 (headroom for the sums below 2^24).
-    let grid = 2f64.powi(big.log2().ceil() as i32 - 22);
-    let q = |v: f64| (v / grid).round() as i64;
-    let (qa, qb) = (q(a), q(b));
-    let qc: Vec<i64> = c.iter().map(|&v| q(v.max(0.0)).max(0)).collect();
-    (0..=k)
-        .map(|kk| {
-            let s = qa + qb * kk as i64 - (1..kk).map(|j| (kk - j) as i64 * qc[j - 1]).sum::<i64>();
-            (s as f64 * grid) as f32
-        })
-        .collect()
 }
 
 /// One training image prepared for a model.
@@ -705,7 +476,7 @@ pub fn train_joint(
             let views = layout.to_views(&w);
             let det = Detector::new(&views)?;
             let t = Instant::now();
-            let round = search(&det, &layout, &mut examples, params, false, None)?;
+            let round = search::search(&det, &layout, &mut examples, params, false, None)?;
             report.cached_seconds += t.elapsed().as_secs_f64();
             let viol = round.plane.b - dot(&round.plane.g, &w);
             report.iterations += 1;
@@ -731,7 +502,7 @@ pub fn train_joint(
         // still move; the last passes are exact and decide convergence.
         let exact = pass >= params.mining_passes || approx_done;
         let budget = (!exact).then_some(params.mining_budget);
-        let round = search(&det, &layout, &mut examples, params, true, budget)?;
+        let round = search::search(&det, &layout, &mut examples, params, true, budget)?;
         report.full_seconds += t.elapsed().as_secs_f64();
         if exact {
             report.exact_passes += 1;
@@ -890,150 +661,6 @@ fn template_shape(
     Ok((rows, cols))
 }
 
-/// One cutting-plane round: the most violated output of every example (over
-/// all locations when `full`, else over its cache) summed into a plane.
-fn search(
-    det: &Detector,
-    layout: &Layout,
-    examples: &mut [Example],
-    params: &TrainParams,
-    full: bool,
-    budget: Option<usize>,
-) -> Result<Round, TrainError> {
-    let results: Vec<Result<Found, TrainError>> = examples
-        .par_iter()
-        .map(|ex| {
-            let aug = TruthLoss {
-                truth: ex.truth.as_ref().map(|t| Truth {
-                    bbox: t.bbox,
-                    visible: &t.visible,
-                }),
-                kind: params.loss,
-                seg_weight: if params.occlusion {
-                    params.seg_weight
-                } else {
-                    0.0
-                },
-                views: ex
-                    .truth
-                    .as_ref()
-                    .and_then(|t| t.views.as_deref().map(Vec::as_slice)),
-            };
-            // The empty output: loss 1 on a positive, 0 on a negative.
-            let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };
-            // The cached locations first: their best value is a tight
-            // cut-off for the exact search over everything.
-            let cached = det.most_violated_among(&ex.pyr, &ex.cache, &aug, floor);
-            let mut cuts = 0;
-            let mut extra = Vec::new();
-            let best = if full {
-                let start = cached.as_ref().map_or(floor, |b| b.value);
-                let (found, others, stats) =
-                    det.most_violated(&ex.pyr, &aug, start, params.max_truncation, budget)?;
-                cuts = stats.min_cuts;
-                extra = others;
-                found.filter(|f| f.value > start).or(cached)
-            } else {
-                cached
-            };
-            let mut g = vec![0.0; layout.len];
-            let (loss, loc) = match &best {
-                Some(b) => {
-                    let (problem, feats, truncated) = det.problem_at(&ex.pyr, &b.location);
-                    let psi = joint_feature(&feats, &b.cells, &problem, truncated);
-                    layout.add_psi(
-                        b.location.view,
-                        &psi,
-                        ex.weight,
-                        &mut g,
-                        params.hop,
-                        params.pairwise,
-                    );
-                    let grid = det.grid(&ex.pyr, &b.location);
-                    (aug.loss(b.location.view, &grid, &b.cells), Some(b.location))
-                }
-                None => (floor, None),
-            };
-            if let Some(t) = &ex.truth {
-                // Skip the constraint of the ground truth against itself.
-                let is_truth = best
-                    .as_ref()
-                    .is_some_and(|b| b.location == t.location && b.cells == t.cells);
-                if is_truth {
-                    return Ok(Found {
-                        g: vec![0.0; layout.len],
-                        b: 0.0,
-                        loss: 0.0,
-                        location: loc,
-                        min_cuts: cuts,
-                        extra,
-                    });
-                }
-                for (gi, pi) in g.iter_mut().zip(&t.psi) {
-                    *gi -= ex.weight * pi;
-                }
-            }
-            Ok(Found {
-                g,
-                b: ex.weight * loss,
-                loss,
-                location: loc,
-                min_cuts: cuts,
-                extra,
-            })
-        })
-        .collect();
-    let mut g = vec![0.0; layout.len];
-    let mut b = 0.0;
-    let mut loss = 0.0;
-    let mut wsum = 0.0;
-    let mut min_cuts = 0;
-    for (ex, r) in examples.iter_mut().zip(results) {
-        let Found {
-            g: gi,
-            b: bi,
-            loss: li,
-            location: loc,
-            min_cuts: cuts,
-            extra,
-        } = r?;
-        min_cuts += cuts;
-        for (a, x) in g.iter_mut().zip(&gi) {
-            *a += x;
-        }
-        b += bi;
-        loss += ex.weight * li;
-        wsum += ex.weight;
-        // The cache is kept in order of recent use: the locations found now
-        // first (the most violated one at the very front, so the next
-        // search starts from a tight cut-off), the least recently useful
-        // last, and those leave first (never the ground truth).
-        for l in extra.into_iter().rev().chain(loc) {
-            if let Some(pos) = ex.cache.iter().position(|c| *c == l) {
-                ex.cache.remove(pos);
-            }
-            ex.cache.insert(0, l);
-        }
-        if ex.cache.len() > params.cache_size {
-            let keep_truth = ex.truth.as_ref().map(|t| t.location);
-            let mut excess = ex.cache.len() - params.cache_size;
-            let mut i = ex.cache.len();
-            while excess > 0 && i > 0 {
-                i -= 1;
-                if Some(ex.cache[i]) != keep_truth {
-                    ex.cache.remove(i);
-                    excess -= 1;
-                }
-            }
-        }
-    }
-    Ok(Round {
-        plane: Plane { g, b },
-        loss: loss / wsum.max(1e-12),
-        min_cuts,
-    })
-}
-
 /// A progress bar in the style used across the CLI (hidden when not a TTY).
 pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len);
@@ -1044,76 +671,4 @@ pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
     }
     pb.set_message(what.to_string());
     pb
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::vision::energy::hop_curvature;
-
-    #[test]
-    fn exact_concave_weights_have_non_negative_curvature() {
-        let mut rng = SplitMix64::new(9);
-        for _ in 0..2000 {
-            let k = rng.range_usize(1, 8);
-            let scale = 10f64.powf(rng.range_f64(-4.0, 3.0));
-            let c: Vec<f64> = (0..k - 1)
-                .map(|_| {
-                    if rng.next_f64() < 0.4 {
-                        0.0
-                    } else {
-                        rng.range_f64(-0.2, 1.0) * scale
-                    }
-                })
-                .collect();
-            let w = exact_concave(
-                rng.range_f64(-1.0, 1.0) * scale,
-                rng.range_f64(-1.0, 1.0) * scale,
-                &c,
-            );
-            let w64: Vec<f64> = w.iter().map(|&v| f64::from(v)).collect();
-            for (j, d2) in hop_curvature(&w64).into_iter().enumerate() {
-                assert!(d2 >= 0.0, "curvature {d2} at {j} of {w:?}");
-                // Close to the requested curvature.
-                assert!((d2 - c[j].max(0.0)).abs() <= 1e-5 * scale.max(1e-30) * 8.0);
-            }
-        }
-    }
-
-    /// The training parametrisation reproduces `w_hop . theta`.
-    #[test]
-    fn hop_reparametrisation_preserves_the_energy() {
-        let layout = Layout::new(vec![(1, 1)], 4, PairwiseMode::Grid);
-        let mut rng = SplitMix64::new(2);
-        for _ in 0..100 {
-            let mut w = vec![0.0; layout.len];
-            for v in w.iter_mut() {
-                *v = rng.range_f64(-1.0, 1.0);
-            }
-            let h = layout.hop_index(0);
-            for j in 2..=4 {
-                w[h + j] = w[h + j].abs();
-            }
-            let views = layout.to_views(&w);
-            let mut psi = vec![0.0; joint_feature_len(1, 4)];
-            let hp = 2 * HOG_DIM + 1 + 2;
-            for t in &mut psi[hp..hp + 5] {
-                *t = rng.range_f64(0.0, 3.0);
-            }
-            let mut train_psi = vec![0.0; layout.len];
-            layout.add_psi(0, &psi, 1.0, &mut train_psi, true, true);
-            let direct: f64 = views[0]
-                .w_hop
-                .iter()
-                .zip(&psi[hp..hp + 5])
-                .map(|(a, b)| f64::from(*a) * b)
-                .sum();
-            let via: f64 = (0..5).map(|j| w[h + j] * train_psi[h + j]).sum();
-            // f32 weights: round-off relative to the size of the energy.
-            assert!(
-                (direct - via).abs() < 1e-5 * (1.0 + direct.abs()),
-                "{direct} vs {via}"
-            );
-        }
-    }
 }

@@ -4,8 +4,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::segment::Segmentation;
-
 /// A binary mask over an image, row-major, one byte per pixel (0 or 1).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Mask {
@@ -305,56 +303,6 @@ pub fn raw_mask(grid: &CellGrid, labels: &[bool], width: usize, height: usize) -
     m
 }
 
-/// Refinement thresholds: a segment whose pixels inside the box are more than
-/// `fill` visible becomes wholly visible (the paper's 0.8); one less than
-/// `clear` visible becomes wholly occluded (0 disables that).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct RefineParams {
-    pub fill: f64,
-    pub clear: f64,
-    /// The pixel-level graph cut that follows (where the viewpoint has a
-    /// shape model); absent in older files: on, default weights.
-    #[serde(default)]
-    pub pixel: super::refine::PixelRefine,
-}
-
-impl Default for RefineParams {
-    fn default() -> Self {
-        Self {
-            fill: 0.8,
-            clear: 0.2,
-            pixel: super::refine::PixelRefine::default(),
-        }
-    }
-}
-
-/// Snaps a raw mask to the image segments inside the box.
-pub fn refine_mask(raw: &Mask, grid: &CellGrid, seg: &Segmentation, params: &RefineParams) -> Mask {
-    let (x0, y0, x1, y1) = grid.pixel_range(raw.width, raw.height);
-    let mut total = vec![0u32; seg.count()];
-    let mut on = vec![0u32; seg.count()];
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let s = seg.label(x, y) as usize;
-            total[s] += 1;
-            on[s] += u32::from(raw.get(x, y));
-        }
-    }
-    let mut out = raw.clone();
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let s = seg.label(x, y) as usize;
-            let frac = f64::from(on[s]) / f64::from(total[s]);
-            if frac > params.fill {
-                out.set(x, y, true);
-            } else if frac < params.clear {
-                out.set(x, y, false);
-            }
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 #[allow(clippy::needless_range_loop)]
 mod tests {
@@ -436,45 +384,6 @@ mod tests {
         let m = raw_mask(&grid, &[false, true], 20, 20);
         assert_eq!(m.area(), 16 * 16);
         assert!(m.get(15, 15) && !m.get(16, 0) && !m.get(0, 16));
-    }
-
-    #[test]
-    fn refinement_fills_and_clears_segments() {
-        // Two segments: left half (label 0) and right half (label 1) of 16x8.
-        let raw: Vec<u32> = (0..8)
-            .flat_map(|_| (0..16).map(|x| u32::from(x >= 8)))
-            .collect();
-        let seg = Segmentation::from_labels(16, 8, &raw).unwrap();
-        let grid = CellGrid {
-            cell_x: 0,
-            cell_y: 0,
-            rows: 1,
-            cols: 2,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            cell_size: 8,
-        };
-        let mut m = Mask::new(16, 8);
-        for y in 0..8 {
-            for x in 0..8 {
-                m.set(x, y, !(x == 0 && y == 0)); // 63/64 of segment 0 visible
-            }
-        }
-        m.set(12, 3, true); // 1/64 of segment 1 visible
-        let r = refine_mask(&m, &grid, &seg, &RefineParams::default());
-        assert_eq!(r.area(), 64);
-        assert!(r.get(0, 0) && !r.get(12, 3));
-        let keep = refine_mask(
-            &m,
-            &grid,
-            &seg,
-            &RefineParams {
-                fill: 1.0,
-                clear: 0.0,
-                ..RefineParams::default()
-            },
-        );
-        assert_eq!(keep, m);
     }
 
     /// The column-major run lengths read pixel by pixel, as `to_rle` was

@@ -36,10 +36,11 @@ use super::energy::{
     edge_direction, BoxProblem, PairwiseMode, ViewWeights, NO_CLIQUE, PAIR_DOWN, PAIR_RIGHT,
 };
 use super::hog::{HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
-use super::mask::{raw_mask, refine_mask, CellGrid, Mask, RefineParams};
+use super::mask::{raw_mask, CellGrid, Mask};
 use super::maxflow::Graph;
 use super::pyramid::{FeaturePyramid, Level};
 use super::refine::refine_pixels;
+use super::refine::{refine_mask, RefineParams};
 use super::shape::ShapeModel;
 use super::{Deadline, VisionError};
 pub use bounds::{

@@ -1,0 +1,86 @@
+//! The training images' feature pyramids, computed once per image and
+//! shared by every model trained in one run.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use indicatif::ProgressBar;
+use rayon::prelude::*;
+
+use super::TrainError;
+use crate::data::{load_image, Sample};
+use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
+use crate::vision::segment::SegmentParams;
+
+/// A pyramid per image path, computed once and shared by every model.
+#[derive(Default)]
+pub struct PyramidCache {
+    map: std::sync::Mutex<HashMap<PathBuf, Arc<FeaturePyramid>>>,
+    /// Keep [`FeaturePyramid::lean`] pyramids.
+    lean: bool,
+}
+
+impl PyramidCache {
+    /// A cache of pyramids without their pixels ([`FeaturePyramid::lean`]):
+    /// enough for training, a quarter less memory; masks of detections in
+    /// them are the raw cell masks.
+    pub fn lean() -> Self {
+        Self {
+            lean: true,
+            ..Self::default()
+        }
+    }
+
+    /// Computes the missing pyramids in parallel.
+    pub fn fill(
+        &self,
+        samples: &[&Sample],
+        pyramid: &PyramidParams,
+        seg: &SegmentParams,
+        progress: &ProgressBar,
+    ) -> Result<(), TrainError> {
+        let missing: Vec<&PathBuf> = {
+            let map = self
+                .map
+                .lock()
+                .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
+            let mut seen = std::collections::HashSet::new();
+            samples
+                .iter()
+                .map(|s| &s.image)
+                .filter(|p| !map.contains_key(*p) && seen.insert(*p))
+                .collect()
+        };
+        progress.set_length(missing.len() as u64);
+        let built: Vec<(PathBuf, Arc<FeaturePyramid>)> = missing
+            .par_iter()
+            .map(|p| {
+                let img = load_image(p)?;
+                let mut pyr = FeaturePyramid::build(&img, pyramid, seg)?;
+                if self.lean {
+                    pyr = pyr.lean()?;
+                }
+                progress.inc(1);
+                Ok(((*p).clone(), Arc::new(pyr)))
+            })
+            .collect::<Result<_, TrainError>>()?;
+        let mut map = self
+            .map
+            .lock()
+            .map_err(|_| TrainError::NoData("cache poisoned".into()))?;
+        map.extend(built);
+        Ok(())
+    }
+
+    /// Adds a pyramid built elsewhere (e.g. of a generated image).
+    pub fn insert(&self, path: PathBuf, pyr: FeaturePyramid) {
+        if let Ok(mut map) = self.map.lock() {
+            map.insert(path, Arc::new(pyr));
+        }
+    }
+
+    pub fn get(&self, path: &PathBuf) -> Option<Arc<FeaturePyramid>> {
+        self.map.lock().ok()?.get(path).cloned()
+    }
+}
