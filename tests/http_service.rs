@@ -1147,12 +1147,22 @@ async fn png_answer_is_a_label_map_of_the_detections() {
     assert_eq!(r.status(), StatusCode::OK);
     let header: Value =
         serde_json::from_str(r.headers()["x-detections"].to_str().unwrap()).unwrap();
+    let r_total: usize = r.headers()["x-detections-total"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
     let bytes = r.bytes().await.unwrap();
     let map = image::load_from_memory(&bytes).unwrap().to_luma8();
     assert_eq!((map.width(), map.height()), (320, 240));
     let dets = json["detections"].as_array().unwrap();
     assert_eq!(header.as_array().unwrap().len(), dets.len());
-    assert_eq!(header[0]["score"], dets[0]["score"]);
+    assert_eq!(r_total, dets.len());
+    // The header rounds (scores to 3 decimals, boxes to 1).
+    let close =
+        |a: &Value, b: &Value, tol: f64| (a.as_f64().unwrap() - b.as_f64().unwrap()).abs() <= tol;
+    assert!(close(&header[0]["score"], &dets[0]["score"], 5e-4));
+    assert!(close(&header[0]["box"]["x"], &dets[0]["box"]["x"], 0.05));
     // Label 1 covers exactly the best detection's refined mask.
     let m = sdhop::vision::mask::Mask::from_rle(
         &serde_json::from_value(dets[0]["mask"].clone()).unwrap(),

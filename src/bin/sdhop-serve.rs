@@ -13,13 +13,16 @@ use prometheus::Registry;
 use sdhop::backend::{select, BackendChoice, GpuOptions};
 use sdhop::http::conn::ConnLimits;
 use sdhop::http::image::ImageLimits;
+use sdhop::http::state::DEFAULT_MESH_LIMITS;
 use sdhop::http::{load_models, serve, warm_up, AppState, HttpConfig};
 use sdhop::infer::{Infer, InferConfig, InferMetrics};
+use sdhop::pose::MeshLimits;
 
 /// mimalloc keeps freed pages for the next request instead of handing them
 /// back and faulting them in again: the pyramids, edge lists and masks of
-/// every detection are large short-lived buffers (issue 22: 50 -> 44 ms per
-/// photograph with one model on one thread).
+/// every detection are large short-lived buffers (50 -> 44 ms per
+/// photograph with one model on one thread). After a large mesh the pose
+/// pool asks it to hand its freed pages back (`mi_collect`).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -39,7 +42,8 @@ struct Args {
     /// Folder of weights files (*.safetensors); every one is loaded.
     #[arg(long, env = "SDHOP_MODELS_DIR", default_value = "models")]
     models_dir: PathBuf,
-    /// Requests waiting at most; more are answered 503 with Retry-After.
+    /// /detect requests waiting at most; more are answered 503 with
+    /// Retry-After.
     #[arg(long, env = "SDHOP_QUEUE_SIZE", default_value_t = 32)]
     queue_size: usize,
     /// Requests computed together at most.
@@ -60,6 +64,24 @@ struct Args {
     /// Largest request body of POST /pose (image, mesh and mask).
     #[arg(long, env = "SDHOP_MAX_POSE_BODY_BYTES", default_value_t = 64 << 20)]
     max_pose_body_bytes: usize,
+    /// Most vertices of a POST /pose mesh: the count its file declares is
+    /// checked (against this and against its bytes) before anything is
+    /// allocated; more is answered 413.
+    #[arg(long, env = "SDHOP_MAX_MESH_VERTICES", default_value_t = DEFAULT_MESH_LIMITS.max_vertices)]
+    max_mesh_vertices: usize,
+    /// Most triangles of a POST /pose mesh (polygons count as the
+    /// triangles they fan into), checked as the vertices are.
+    #[arg(long, env = "SDHOP_MAX_MESH_TRIANGLES", default_value_t = DEFAULT_MESH_LIMITS.max_triangles)]
+    max_mesh_triangles: usize,
+    /// POST /pose requests admitted at once (waiting or computing), in a
+    /// lane of their own: more are answered 503 while /detect is still
+    /// served, and readiness answers 503 while every place is taken.
+    #[arg(long, env = "SDHOP_POSE_QUEUE_SIZE", default_value_t = 8)]
+    pose_queue_size: usize,
+    /// Pose refinements computed at once, on threads of their own (0: half
+    /// the cores, at least one): the rest of the cores stay with /detect.
+    #[arg(long, env = "SDHOP_POSE_THREADS", default_value_t = 0)]
+    pose_threads: usize,
     /// Largest image, in pixels (checked from the header, before decoding).
     #[arg(long, env = "SDHOP_MAX_PIXELS", default_value_t = 16_000_000)]
     max_pixels: usize,
@@ -81,7 +103,6 @@ struct Args {
     /// Threads of the compute pool (0: one per core).
     #[arg(long, env = "SDHOP_COMPUTE_THREADS", default_value_t = 0)]
     compute_threads: usize,
-    /// Seconds to finish requests in flight after SIGTERM.
     /// A request body must arrive at least this fast, in bytes per second
     /// on average once --body-grace-ms has passed (0: only the deadline);
     /// a slower or stalled upload is answered 408 and closed.
@@ -97,6 +118,9 @@ struct Args {
     /// answered 429 and closed.
     #[arg(long, env = "SDHOP_MAX_CONNECTIONS_PER_CLIENT", default_value_t = 128)]
     max_connections_per_client: usize,
+    /// Seconds to finish requests in flight after SIGTERM (or Ctrl-C):
+    /// the service turns not ready and admits nothing new; requests still
+    /// waiting when the period ends are answered 503 just before it does.
     #[arg(long, env = "SDHOP_GRACE_SECONDS", default_value_t = 30)]
     grace_seconds: u64,
     /// Log format.
@@ -202,6 +226,12 @@ fn run(args: Args) -> Result<(), String> {
         queue_size: args.queue_size,
         max_batch: args.max_batch,
         max_batch_delay: Duration::from_millis(args.max_batch_delay_ms),
+        pose_queue_size: args.pose_queue_size.max(1),
+        pose_threads: if args.pose_threads > 0 {
+            args.pose_threads
+        } else {
+            (std::thread::available_parallelism().map_or(1, |n| n.get()) / 2).max(1)
+        },
     };
     let metrics = InferMetrics::new(&registry).map_err(|e| e.to_string())?;
     let infer = Infer::start(backend, infer_config, metrics).map_err(|e| e.to_string())?;
@@ -211,6 +241,10 @@ fn run(args: Args) -> Result<(), String> {
         image: ImageLimits {
             max_pixels: args.max_pixels,
             max_side: args.max_side,
+        },
+        mesh: MeshLimits {
+            max_vertices: args.max_mesh_vertices,
+            max_triangles: args.max_mesh_triangles,
         },
         default_timeout: Duration::from_millis(args.timeout_ms),
         max_timeout: Duration::from_millis(args.max_timeout_ms.max(args.timeout_ms)),

@@ -28,7 +28,7 @@ pub(crate) fn run_pose_bench(args: &PoseBenchArgs) -> Result<(), Failure> {
         load_model_dir(&args.models_dir)?
     } else {
         eprintln!(
-            "{}: no models, so no SD-HOP mask (train them: see the README)",
+            "{}: no models, so no SD-HOP mask (train them: see docs/training.md)",
             args.models_dir.display()
         );
         Vec::new()

@@ -8,7 +8,7 @@ pub(crate) struct TrainArgs {
     /// CMU_KO8 root (with single/ and negative/).
     #[arg(long, required_unless_present = "coco")]
     pub(crate) ko8: Option<PathBuf>,
-    /// COCO-style JSON of your own objects (see the README).
+    /// COCO-style JSON of your own objects (see docs/training.md).
     #[arg(long, conflicts_with = "ko8", requires_all = ["images", "category"])]
     pub(crate) coco: Option<PathBuf>,
     /// Folder the COCO file names are relative to.

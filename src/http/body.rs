@@ -153,7 +153,15 @@ impl Pacing {
 pub async fn buffer(req: Request, limit: usize, pacing: &Pacing) -> Result<Request, ApiError> {
     let (parts, mut body) = req.into_parts();
     let start = Instant::now();
-    let mut buf: Vec<u8> = Vec::new();
+    // Room for the declared length (within the limit) at once: growing by
+    // doubling would copy a large body several times and hold twice its
+    // size. Reserved pages cost nothing until the bytes arrive.
+    let declared = parts
+        .headers
+        .get(axum::http::header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<usize>().ok())
+        .unwrap_or(0);
+    let mut buf: Vec<u8> = Vec::with_capacity(declared.min(limit));
     loop {
         let due = pacing.due(start, buf.len());
         let frame = match tokio::time::timeout_at(due.into(), body.frame()).await {

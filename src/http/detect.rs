@@ -1,7 +1,9 @@
 //! `POST /detect`: the image as the body (`image/jpeg`, `image/png`) or as
 //! the `image` part of a `multipart/form-data` body; options in the query.
 //! Answers the detection JSON, or with `format=png` (or `Accept:
-//! image/png`) an 8-bit label map with the detections in `X-Detections`.
+//! image/png`) a label map with the detections in `X-Detections` (as many
+//! as fit in [`MAX_DETECTIONS_HEADER`]) and all of them in the PNG's
+//! `sdhop-detections` text chunk.
 
 use std::io::Cursor;
 use std::sync::Arc;
@@ -48,7 +50,8 @@ pub struct DetectQuery {
 
 impl DetectQuery {
     /// Parses the raw query; `model` may repeat and holds comma-separated
-    /// names. Unknown or malformed parameters are errors.
+    /// names. Unknown, repeated (other than `model`) or malformed
+    /// parameters are errors.
     pub fn parse(
         raw: Option<&str>,
         max_detections: usize,
@@ -65,9 +68,24 @@ impl DetectQuery {
             transfer: false,
         };
         let bad = |k: &str, v: &str, why: &str| {
-            ApiError::BadRequest(format!("query parameter {k}={v:?}: {why}"))
+            ApiError::BadRequest(format!(
+                "query parameter {}={}: {why}",
+                super::error::shorten(k),
+                super::error::shorten(v)
+            ))
         };
+        let mut seen: Vec<String> = Vec::new();
         for (k, v) in form_urlencoded::parse(raw.unwrap_or("").as_bytes()) {
+            if k != "model" {
+                if seen.iter().any(|s| *s == k) {
+                    return Err(bad(
+                        &k,
+                        &v,
+                        "repeated: give it once (only model may repeat)",
+                    ));
+                }
+                seen.push(k.to_string());
+            }
             match k.as_ref() {
                 "model" => {
                     for name in v.split(',').map(str::trim) {
@@ -166,15 +184,41 @@ pub(super) fn media_type(headers: &HeaderMap) -> Option<String> {
     Some(v.split(';').next()?.trim().to_ascii_lowercase())
 }
 
-/// Whether the client asked for a PNG by its `Accept` header.
+/// Whether the client asked for a PNG by its `Accept` header: `image/png`
+/// listed with a weight above 0 and above that of `application/json` (or
+/// of `*/*`, `application/*` where JSON is not listed).
 fn accepts_png(headers: &HeaderMap) -> bool {
-    headers
-        .get(header::ACCEPT)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| {
-            v.split(',')
-                .any(|t| t.split(';').next().is_some_and(|t| t.trim() == "image/png"))
+    let Some(accept) = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()) else {
+        return false;
+    };
+    // The weight of each listed media range.
+    let weights: Vec<(String, f32)> = accept
+        .split(',')
+        .filter_map(|item| {
+            let mut parts = item.split(';');
+            let range = parts.next()?.trim().to_ascii_lowercase();
+            let q = parts
+                .filter_map(|p| p.trim().strip_prefix("q="))
+                .find_map(|q| q.trim().parse::<f32>().ok())
+                .unwrap_or(1.0);
+            Some((range, q))
         })
+        .collect();
+    let weight = |range: &str| {
+        weights
+            .iter()
+            .filter(|(r, _)| r == range)
+            .map(|(_, q)| *q)
+            .fold(None, |a: Option<f32>, q| Some(a.map_or(q, |a| a.max(q))))
+    };
+    let Some(png) = weight("image/png") else {
+        return false;
+    };
+    let json = weight("application/json")
+        .or_else(|| weight("application/*"))
+        .or_else(|| weight("*/*"))
+        .unwrap_or(0.0);
+    png > 0.0 && png > json
 }
 
 /// The image bytes of a request, within the body limit.
@@ -321,13 +365,35 @@ struct HeaderDetection<'a> {
     bbox: BoxJson,
 }
 
-/// An 8-bit label map the size of the image: 0 is background, `k` the
-/// visible pixels of the `k`-th detection (best first; a pixel keeps the
-/// best detection's label); detections past 255 are left out of the map.
-pub fn label_map(resp: &DetectResponse) -> image::GrayImage {
+/// The largest `X-Detections` header, in bytes: under the 8 KiB that many
+/// proxies and HTTP clients allow a header line. The detections that do
+/// not fit are left out of it (`X-Detections-Total` says how many there
+/// are); all of them are in the PNG's `sdhop-detections` text chunk.
+pub const MAX_DETECTIONS_HEADER: usize = 7 << 10;
+
+/// The PNG text chunk (iTXt) that holds every detection of a label map.
+pub const DETECTIONS_CHUNK: &str = "sdhop-detections";
+
+/// Rounds to `digits` decimals (shorter headers).
+fn round(v: f64, digits: i32) -> f64 {
+    let f = 10f64.powi(digits);
+    (v * f).round() / f
+}
+
+/// A label map the size of the image: 0 is background, `k` the visible
+/// pixels of the `k`-th detection (best first; a pixel keeps the best
+/// detection's label, so a detection whose visible pixels all belong to
+/// better ones, or whose mask is empty, has no pixel in it). 8-bit up to
+/// 255 detections, 16-bit above.
+pub fn label_map(resp: &DetectResponse) -> Vec<u16> {
     let (w, h) = (resp.image.width, resp.image.height);
-    let mut map = image::GrayImage::new(w as u32, h as u32);
-    for (k, d) in resp.detections.iter().enumerate().take(255) {
+    let mut map = vec![0u16; w * h];
+    for (k, d) in resp
+        .detections
+        .iter()
+        .enumerate()
+        .take(usize::from(u16::MAX))
+    {
         let Some(mask) = d
             .mask
             .as_ref()
@@ -341,19 +407,60 @@ pub fn label_map(resp: &DetectResponse) -> image::GrayImage {
         }
         for (px, &on) in map.iter_mut().zip(&mask.data) {
             if on != 0 && *px == 0 {
-                *px = (k + 1) as u8;
+                *px = (k + 1) as u16;
             }
         }
     }
     map
 }
 
-fn label_map_response(resp: &DetectResponse) -> Result<Response, ApiError> {
+/// The label map as PNG (8-bit when every label fits, else 16-bit) with
+/// `chunk` (every detection, JSON) in its `sdhop-detections` text chunk.
+fn label_map_png(resp: &DetectResponse, chunk: String) -> Result<Vec<u8>, png::EncodingError> {
     let map = label_map(resp);
-    let mut png = Vec::new();
-    map.write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png)
-        .map_err(|e| ApiError::Internal(format!("PNG encoder: {e}")))?;
+    let wide = map.iter().any(|&v| v > 255) || resp.detections.len() > 255;
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(
+        Cursor::new(&mut out),
+        resp.image.width as u32,
+        resp.image.height as u32,
+    );
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(if wide {
+        png::BitDepth::Sixteen
+    } else {
+        png::BitDepth::Eight
+    });
+    enc.add_itxt_chunk(DETECTIONS_CHUNK.to_string(), chunk)?;
+    let mut writer = enc.write_header()?;
+    let data: Vec<u8> = if wide {
+        map.iter().flat_map(|v| v.to_be_bytes()).collect()
+    } else {
+        map.iter().map(|&v| v as u8).collect()
+    };
+    writer.write_image_data(&data)?;
+    writer.finish()?;
+    Ok(out)
+}
+
+fn label_map_response(resp: &DetectResponse) -> Result<Response, ApiError> {
     let dets: Vec<HeaderDetection> = resp
+        .detections
+        .iter()
+        .map(|d| HeaderDetection {
+            label: &d.label,
+            model: &d.model,
+            score: round(d.score, 3),
+            bbox: BoxJson {
+                x: round(d.bbox.x, 1),
+                y: round(d.bbox.y, 1),
+                width: round(d.bbox.width, 1),
+                height: round(d.bbox.height, 1),
+            },
+        })
+        .collect();
+    // The text chunk: every detection, unrounded.
+    let full: Vec<HeaderDetection> = resp
         .detections
         .iter()
         .map(|d| HeaderDetection {
@@ -363,11 +470,29 @@ fn label_map_response(resp: &DetectResponse) -> Result<Response, ApiError> {
             bbox: d.bbox,
         })
         .collect();
-    let json = serde_json::to_string(&dets).map_err(|e| ApiError::Internal(e.to_string()))?;
-    let value = HeaderValue::from_str(&ascii_json(&json))
+    let all = serde_json::to_string(&full).map_err(|e| ApiError::Internal(e.to_string()))?;
+    // The header: the best detections whose JSON fits.
+    let mut header_json = String::from("[");
+    for (i, d) in dets.iter().enumerate() {
+        let one =
+            ascii_json(&serde_json::to_string(d).map_err(|e| ApiError::Internal(e.to_string()))?);
+        if header_json.len() + one.len() + 2 > MAX_DETECTIONS_HEADER {
+            break;
+        }
+        if i > 0 {
+            header_json.push(',');
+        }
+        header_json.push_str(&one);
+    }
+    header_json.push(']');
+    let value = HeaderValue::from_str(&header_json)
         .map_err(|e| ApiError::Internal(format!("X-Detections header: {e}")))?;
+    let png =
+        label_map_png(resp, all).map_err(|e| ApiError::Internal(format!("PNG encoder: {e}")))?;
     let mut out = ([(header::CONTENT_TYPE, "image/png")], png).into_response();
-    out.headers_mut().insert("x-detections", value);
+    let headers = out.headers_mut();
+    headers.insert("x-detections", value);
+    headers.insert("x-detections-total", HeaderValue::from(dets.len()));
     Ok(out)
 }
 
@@ -423,12 +548,31 @@ mod tests {
             "timeout_ms=61000",
             "model=",
             "colour=red",
+            "threshold=1&threshold=2",
+            "masks=raw&masks=raw",
         ] {
             assert!(
                 matches!(parse(bad), Err(ApiError::BadRequest(_))),
                 "{bad} should be refused"
             );
         }
+    }
+
+    #[test]
+    fn accept_weights_decide_the_png() {
+        let accepts = |v: &str| {
+            let mut h = HeaderMap::new();
+            h.insert(header::ACCEPT, HeaderValue::from_str(v).unwrap());
+            accepts_png(&h)
+        };
+        assert!(accepts("image/png"));
+        assert!(accepts("image/png, application/json;q=0.5"));
+        assert!(accepts("IMAGE/PNG ; q=0.9, */*;q=0.1"));
+        assert!(!accepts("image/png;q=0"));
+        assert!(!accepts("image/png;q=0.5, application/json"));
+        assert!(!accepts("application/json, image/png;q=0.2"));
+        assert!(!accepts("*/*"));
+        assert!(!accepts("image/png;q=0.5, */*"));
     }
 
     #[test]

@@ -19,7 +19,7 @@ pub const RETRY_AFTER_SECONDS: u64 = 1;
 pub enum ApiError {
     #[error("{0}")]
     BadRequest(String),
-    #[error("unknown model: {0}")]
+    #[error("unknown model: {}", shorten(.0))]
     UnknownModel(String),
     #[error("{0}")]
     NotFound(String),
@@ -31,8 +31,8 @@ pub enum ApiError {
     UnsupportedMediaType(String),
     #[error("{0}")]
     Unprocessable(String),
-    #[error("the inference queue is full, retry later")]
-    Overloaded,
+    #[error("the {0} lane of the inference queue is full, retry later")]
+    Overloaded(&'static str),
     #[error("the service is not ready: {0}")]
     NotReady(String),
     #[error("the request's deadline passed before it was answered")]
@@ -41,6 +41,21 @@ pub enum ApiError {
     RequestTimeout(String),
     #[error("internal error: {0}")]
     Internal(String),
+}
+
+/// The longest piece of a client's input echoed in an error message.
+pub const ECHO_CHARS: usize = 64;
+
+/// `text` as an error message echoes it: at most [`ECHO_CHARS`]
+/// characters, with how long it was when cut.
+pub fn shorten(text: &str) -> String {
+    let n = text.chars().count();
+    if n <= ECHO_CHARS {
+        format!("{text:?}")
+    } else {
+        let head: String = text.chars().take(ECHO_CHARS).collect();
+        format!("{head:?}... ({n} characters)")
+    }
 }
 
 /// The JSON body of an error.
@@ -59,7 +74,7 @@ impl ApiError {
             ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             ApiError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
-            ApiError::Overloaded | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
+            ApiError::Overloaded(_) | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
                 StatusCode::SERVICE_UNAVAILABLE
             }
             ApiError::RequestTimeout(_) => StatusCode::REQUEST_TIMEOUT,
@@ -76,7 +91,7 @@ impl ApiError {
             ApiError::PayloadTooLarge(_) => "payload_too_large",
             ApiError::UnsupportedMediaType(_) => "unsupported_media_type",
             ApiError::Unprocessable(_) => "unprocessable",
-            ApiError::Overloaded => "overloaded",
+            ApiError::Overloaded(_) => "overloaded",
             ApiError::NotReady(_) => "not_ready",
             ApiError::DeadlineExceeded => "deadline_exceeded",
             ApiError::RequestTimeout(_) => "request_timeout",
@@ -109,7 +124,7 @@ impl IntoResponse for ApiError {
 impl From<InferError> for ApiError {
     fn from(e: InferError) -> Self {
         match e {
-            InferError::Overloaded => ApiError::Overloaded,
+            InferError::Overloaded(lane) => ApiError::Overloaded(lane.name()),
             InferError::ShuttingDown => ApiError::NotReady("shutting down".into()),
             InferError::DeadlineExceeded => ApiError::DeadlineExceeded,
             InferError::Vision(v) => v.into(),
@@ -143,7 +158,7 @@ impl From<PoseError> for ApiError {
             PoseError::InvalidMesh(_)
             | PoseError::InvalidParameter(_)
             | PoseError::NotEnoughEdges(_)
-            | PoseError::NotDetected(_) => ApiError::Unprocessable(e.to_string()),
+            | PoseError::NotDetected { .. } => ApiError::Unprocessable(e.to_string()),
         }
     }
 }

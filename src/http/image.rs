@@ -32,40 +32,43 @@ impl Default for ImageLimits {
 /// The media types an image may be sent as.
 pub const IMAGE_TYPES: [&str; 2] = ["image/jpeg", "image/png"];
 
-/// Decodes an uploaded PNG or JPEG into an RGB image, refusing it with the
-/// right error: 400 when empty, 415 when neither PNG nor JPEG, 413 when the
-/// header declares more pixels than allowed, 422 when it cannot be decoded.
-pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError> {
+/// The size of an uploaded PNG or JPEG from its header alone (nothing is
+/// allocated for its pixels), refusing it with the right error: 400 when
+/// empty, 415 when neither PNG nor JPEG, 413 when the header declares more
+/// pixels than allowed, 422 when the header cannot be read.
+pub fn image_size(bytes: &[u8], limits: &ImageLimits) -> Result<(usize, usize), ApiError> {
+    let format = image_format(bytes)?;
+    header_size(bytes, format, limits)
+}
+
+/// PNG or JPEG, from the bytes' signature.
+fn image_format(bytes: &[u8]) -> Result<ImageFormat, ApiError> {
     if bytes.is_empty() {
         return Err(ApiError::BadRequest("the request has no image".into()));
     }
     let format = image::guess_format(bytes)
         .map_err(|_| ApiError::Unprocessable("the body is not a PNG or JPEG image".into()))?;
     if !matches!(format, ImageFormat::Png | ImageFormat::Jpeg) {
+        let name = format
+            .extensions_str()
+            .first()
+            .map_or_else(|| "another format".to_string(), |e| e.to_uppercase());
         return Err(ApiError::UnsupportedMediaType(format!(
-            "images must be PNG or JPEG, got {format:?}"
+            "images must be PNG or JPEG; this one is {name}"
         )));
     }
-    let reader = |bytes| {
-        let mut r = ImageReader::with_format(Cursor::new(bytes), format);
-        let mut l = Limits::default();
-        l.max_image_width = Some(limits.max_side);
-        l.max_image_height = Some(limits.max_side);
-        // Room for the decoded RGBA buffer of the largest allowed image.
-        l.max_alloc = Some((limits.max_pixels as u64).saturating_mul(4) + (1 << 20));
-        r.limits(l);
-        r
-    };
-    // The header alone, without limits: nothing is allocated for pixels.
+    Ok(format)
+}
+
+/// The size the header declares, checked against `limits`.
+fn header_size(
+    bytes: &[u8],
+    format: ImageFormat,
+    limits: &ImageLimits,
+) -> Result<(usize, usize), ApiError> {
     let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
         .into_dimensions()
         .map_err(|e| ApiError::Unprocessable(format!("cannot read the image header: {e}")))?;
-    if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
-        // The decoder fills a truncated scan with grey; refuse it instead.
-        return Err(ApiError::Unprocessable(
-            "the JPEG is truncated (no end-of-image marker after its last scan)".into(),
-        ));
-    }
     if w == 0 || h == 0 {
         return Err(ApiError::Unprocessable(format!(
             "the image is empty ({w}x{h})"
@@ -80,6 +83,33 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError
             limits.max_pixels, limits.max_side
         )));
     }
+    Ok((w as usize, h as usize))
+}
+
+/// Decodes an uploaded PNG or JPEG into an RGB image, refusing it with the
+/// right error: 400 when empty, 415 when neither PNG nor JPEG, 413 when the
+/// header declares more pixels than allowed, 422 when it cannot be decoded.
+/// The pixels are taken as stored: an EXIF orientation is not applied.
+pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError> {
+    let format = image_format(bytes)?;
+    let reader = |bytes| {
+        let mut r = ImageReader::with_format(Cursor::new(bytes), format);
+        let mut l = Limits::default();
+        l.max_image_width = Some(limits.max_side);
+        l.max_image_height = Some(limits.max_side);
+        // Room for the decoded RGBA buffer of the largest allowed image.
+        l.max_alloc = Some((limits.max_pixels as u64).saturating_mul(4) + (1 << 20));
+        r.limits(l);
+        r
+    };
+    // The header alone first: nothing is allocated for pixels.
+    header_size(bytes, format, limits)?;
+    if format == ImageFormat::Jpeg && !jpeg_is_complete(bytes) {
+        // The decoder fills a truncated scan with grey; refuse it instead.
+        return Err(ApiError::Unprocessable(
+            "the JPEG is truncated (no end-of-image marker after its last scan)".into(),
+        ));
+    }
     let img = reader(bytes).decode().map_err(|e| match e {
         image::ImageError::Limits(_) => {
             ApiError::PayloadTooLarge(format!("the image needs too much memory: {e}"))
@@ -89,22 +119,89 @@ pub fn decode(bytes: &[u8], limits: &ImageLimits) -> Result<ColorImage, ApiError
     ColorImage::from_rgb8(&img.to_rgb8()).map_err(|e| ApiError::Unprocessable(e.to_string()))
 }
 
-/// Decodes a visibility mask: a PNG whose non-zero pixels (any colour
-/// channel) are visible. Anything that is not a decodable PNG is 422 (413
-/// when its header declares too many pixels).
-pub fn decode_mask(bytes: &[u8], limits: &ImageLimits) -> Result<Mask, ApiError> {
-    if !matches!(image::guess_format(bytes), Ok(ImageFormat::Png)) {
+/// The PNG signature.
+const PNG_SIGNATURE: &[u8] = b"\x89PNG\r\n\x1a\n";
+
+fn mask_error(e: impl std::fmt::Display) -> ApiError {
+    ApiError::Unprocessable(format!("mask: cannot read the PNG: {e}"))
+}
+
+/// The size of a visibility mask from its PNG header alone: 422 when it
+/// is not a PNG, 413 when it declares more pixels than allowed.
+pub fn mask_size(bytes: &[u8], limits: &ImageLimits) -> Result<(usize, usize), ApiError> {
+    if !bytes.starts_with(PNG_SIGNATURE) {
         return Err(ApiError::Unprocessable("the mask must be a PNG".into()));
     }
-    let img = decode(bytes, limits).map_err(|e| match e {
+    header_size(bytes, ImageFormat::Png, limits).map_err(|e| match e {
         ApiError::PayloadTooLarge(m) => ApiError::PayloadTooLarge(format!("mask: {m}")),
         other => ApiError::Unprocessable(format!("mask: {other}")),
-    })?;
-    let (w, h) = (img.width(), img.height());
+    })
+}
+
+/// Decodes a visibility mask of `expected` size (checked from the header,
+/// before any pixel is decoded): a PNG whose pixels are visible where a
+/// stored value is non-zero: the grey level or any colour channel at its
+/// own depth (a 16-bit 1 counts), the index of a palette PNG (whatever
+/// colour the palette gives it); a fully transparent pixel (alpha 0) is
+/// hidden. Anything that is not a decodable PNG is 422 (413 when its
+/// header declares too many pixels).
+pub fn decode_mask(
+    bytes: &[u8],
+    limits: &ImageLimits,
+    expected: Option<(usize, usize)>,
+) -> Result<Mask, ApiError> {
+    let (w, h) = mask_size(bytes, limits)?;
+    if let Some((ew, eh)) = expected {
+        if (w, h) != (ew, eh) {
+            return Err(ApiError::Unprocessable(format!(
+                "the mask is {w}x{h}, the image {ew}x{eh}: send a mask of the image's size"
+            )));
+        }
+    }
+    let mut decoder = png::Decoder::new(Cursor::new(bytes));
+    // The stored values: no palette expansion, no scaling of bit depths.
+    decoder.set_transformations(png::Transformations::IDENTITY);
+    decoder.set_limits(png::Limits {
+        bytes: limits.max_pixels.saturating_mul(8) + (1 << 20),
+    });
+    let mut reader = decoder.read_info().map_err(mask_error)?;
+    let (colour, depth) = reader.output_color_type();
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| mask_error("the image is too large"))?;
+    let mut buf = vec![0u8; size];
+    let frame = reader.next_frame(&mut buf).map_err(mask_error)?;
+    let line = frame.line_size;
+    let bits = depth as usize;
+    let (channels, alpha) = match colour {
+        png::ColorType::Grayscale | png::ColorType::Indexed => (1, false),
+        png::ColorType::GrayscaleAlpha => (2, true),
+        png::ColorType::Rgb => (3, false),
+        png::ColorType::Rgba => (4, true),
+    };
+    // Sample `k` of a row, at its own depth.
+    let sample = |row: &[u8], k: usize| -> u16 {
+        match bits {
+            16 => u16::from_be_bytes([row[2 * k], row[2 * k + 1]]),
+            8 => u16::from(row[k]),
+            b => {
+                let bit = k * b;
+                let byte = row[bit / 8];
+                let shift = 8 - b - bit % 8;
+                u16::from((byte >> shift) & ((1u8 << b) - 1))
+            }
+        }
+    };
     let mut mask = Mask::new(w, h);
-    for (i, px) in img.data().chunks_exact(3).enumerate() {
-        if px.iter().any(|&v| v != 0.0) {
-            mask.set(i % w, i / w, true);
+    for y in 0..h {
+        let row = &buf[y * line..(y + 1) * line];
+        for x in 0..w {
+            let first = x * channels;
+            let colours = if alpha { channels - 1 } else { channels };
+            let opaque = !alpha || sample(row, first + channels - 1) != 0;
+            if opaque && (0..colours).any(|c| sample(row, first + c) != 0) {
+                mask.set(x, y, true);
+            }
         }
     }
     Ok(mask)
@@ -192,7 +289,7 @@ mod tests {
         let mut p = Vec::new();
         img.write_to(&mut Cursor::new(&mut p), ImageFormat::Png)
             .unwrap();
-        let m = decode_mask(&p, &ImageLimits::default()).unwrap();
+        let m = decode_mask(&p, &ImageLimits::default(), Some((6, 4))).unwrap();
         assert_eq!((m.width, m.height), (6, 4));
         for y in 0..4 {
             for x in 0..6 {
@@ -205,7 +302,7 @@ mod tests {
             .unwrap();
         for bad in [&j[..], &p[..p.len() / 2], b"not a mask"] {
             assert!(matches!(
-                decode_mask(bad, &ImageLimits::default()),
+                decode_mask(bad, &ImageLimits::default(), None),
                 Err(ApiError::Unprocessable(_))
             ));
         }

@@ -98,6 +98,10 @@ pub async fn warm_up(state: &AppState) -> Result<(), InferError> {
     Ok(())
 }
 
+/// How long before the end of the grace period the requests still waiting
+/// are answered 503 (a quarter of the period when that is shorter).
+const CUT_MARGIN: Duration = Duration::from_millis(500);
+
 /// Serves until `shutdown` resolves, then becomes not ready, stops
 /// admitting, lets requests in flight finish (at most `grace`), and drains
 /// the queue. Returns whether everything finished within the grace period;
@@ -122,13 +126,25 @@ pub async fn serve(
     });
     let server = tokio::spawn(async move { server.await });
     // Wait for the signal, then give the server and the queue one grace
-    // period together.
+    // period together. Just before it ends, every request still waiting is
+    // answered 503, and the server has the rest of the period to send
+    // those answers.
     let _ = rx.await;
     let until = tokio::time::Instant::now() + grace;
-    let drained = match tokio::time::timeout_at(until, server).await {
+    let answer_by = until - (grace / 4).min(CUT_MARGIN);
+    let mut server = server;
+    let drained = match tokio::time::timeout_at(answer_by, &mut server).await {
         Ok(Ok(Ok(()))) => true,
         Ok(Ok(Err(e))) => return Err(e),
-        _ => false,
+        Ok(Err(_)) => false,
+        Err(_) => {
+            tracing::warn!("grace period ending: answering the requests still waiting 503");
+            state.infer.cut_waiting();
+            match tokio::time::timeout_at(until, server).await {
+                Ok(Ok(Err(e))) => return Err(e),
+                _ => false,
+            }
+        }
     };
     let left = until.saturating_duration_since(tokio::time::Instant::now());
     let queue_done = state.infer.shutdown(left).await;

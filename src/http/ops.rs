@@ -29,12 +29,12 @@ pub async fn live() -> Json<Status> {
 }
 
 /// `GET /health/ready`: models loaded and warmed, backend healthy, not
-/// shutting down.
+/// shutting down, no lane saturated (503 says which is).
 pub async fn ready(State(state): State<Arc<AppState>>) -> Result<Json<Status>, ApiError> {
     state
         .readiness()
         .map(|()| Json(Status { status: "ready" }))
-        .map_err(|r| ApiError::NotReady(r.reason().into()))
+        .map_err(|r| ApiError::NotReady(r.reason()))
 }
 
 /// `GET /metrics`: Prometheus text exposition.
@@ -60,7 +60,11 @@ pub struct Limits {
     pub max_detections: usize,
     pub default_timeout_ms: u64,
     pub max_timeout_ms: u64,
+    pub max_mesh_vertices: usize,
+    pub max_mesh_triangles: usize,
     pub queue_size: usize,
+    pub pose_queue_size: usize,
+    pub pose_threads: usize,
     pub max_batch: usize,
     pub max_batch_delay_ms: u64,
     pub min_body_rate: u64,
@@ -94,7 +98,11 @@ pub async fn info(State(state): State<Arc<AppState>>) -> Json<Info> {
             max_detections: c.max_detections,
             default_timeout_ms: c.default_timeout.as_millis() as u64,
             max_timeout_ms: c.max_timeout.as_millis() as u64,
+            max_mesh_vertices: c.mesh.max_vertices,
+            max_mesh_triangles: c.mesh.max_triangles,
             queue_size: q.queue_size,
+            pose_queue_size: q.pose_queue_size,
+            pose_threads: q.pose_threads,
             max_batch: q.max_batch,
             max_batch_delay_ms: q.max_batch_delay.as_millis() as u64,
             min_body_rate: c.min_body_rate,

@@ -9,36 +9,45 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use axum::body::Bytes;
 use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::detect::{media_type, multipart_error, timeout_param};
 use super::error::ApiError;
-use super::image::{decode, decode_mask};
+use super::image::{decode, decode_mask, image_size, mask_size};
 use super::state::AppState;
-use crate::infer::PoseTask;
+use crate::infer::{Lane, PoseTask};
 use crate::pose::api::{MaskSource, PoseParams};
 use crate::pose::Mesh;
+use crate::vision::Deadline;
 
-/// The parts of a pose request, as sent.
+/// The parts of a pose request, as sent (views of the buffered body: no
+/// copies).
 #[derive(Default)]
 struct Parts {
-    image: Option<Vec<u8>>,
-    mesh: Option<Vec<u8>>,
-    mask: Option<Vec<u8>>,
-    params: Option<Vec<u8>>,
+    image: Option<Bytes>,
+    mesh: Option<Bytes>,
+    mask: Option<Bytes>,
+    params: Option<Bytes>,
 }
 
-/// The query of `POST /pose`: only `timeout_ms`.
+/// The query of `POST /pose`: only `timeout_ms`, at most once.
 fn parse_query(raw: Option<&str>, max_timeout: Duration) -> Result<Option<Duration>, ApiError> {
     let mut timeout = None;
     for (k, v) in form_urlencoded::parse(raw.unwrap_or("").as_bytes()) {
         match k.as_ref() {
+            "timeout_ms" if timeout.is_some() => {
+                return Err(ApiError::BadRequest(
+                    "query parameter timeout_ms is repeated: give it once".into(),
+                ))
+            }
             "timeout_ms" => timeout = Some(timeout_param(&v, max_timeout)?),
             _ => {
                 return Err(ApiError::BadRequest(format!(
-                    "query parameter {k}={v:?}: unknown parameter"
+                    "query parameter {}: unknown parameter (POST /pose takes only timeout_ms)",
+                    super::error::shorten(&k)
                 )))
             }
         }
@@ -91,7 +100,7 @@ async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
         if slot.is_some() {
             refused.get_or_insert(format!("the part {name:?} is repeated"));
         }
-        *slot = Some(bytes.to_vec());
+        *slot = Some(bytes);
     }
     match refused {
         Some(why) => Err(ApiError::BadRequest(why)),
@@ -131,35 +140,47 @@ pub async fn pose(
             .unwrap_or(cfg.default_timeout);
     let req = super::body::buffer(req, cfg.max_pose_body_bytes, &state.pacing(deadline)).await?;
     timeout?;
-    // Admission before keeping anything, as for /detect.
-    let permit = state.infer.admit()?;
+    // Admission to the pose lane before keeping anything, as for /detect.
+    let permit = state.infer.admit_to(Lane::Pose)?;
     let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
     let missing =
         |name: &str| ApiError::BadRequest(format!("the multipart body has no `{name}` part"));
     let image = parts.image.ok_or_else(|| missing("image"))?;
     let mesh = parts.mesh.ok_or_else(|| missing("mesh"))?;
     let params = parse_params(&parts.params.ok_or_else(|| missing("params"))?)?;
+    let limits = cfg.image;
+    // The cheap checks first, from the headers alone: the sizes of the
+    // image and the mask, the parameters, the model and its labels.
+    let size = image_size(&image, &limits)?;
+    let mask_bytes = parts.mask;
+    let mask_dims = mask_bytes
+        .as_ref()
+        .map(|b| mask_size(b, &limits))
+        .transpose()?;
+    params.check(size, mask_dims)?;
     // A detection is needed for its mask, or for the start poses when
     // there is no initial pose.
     let needs_detection = params.mask == Some(MaskSource::Detect) || params.initial_pose.is_none();
     let model = match (needs_detection, &params.model) {
-        (true, Some(name)) => Some(Arc::clone(
-            &state
+        (true, Some(name)) => {
+            let loaded = state
                 .model(name)
-                .ok_or_else(|| ApiError::UnknownModel(name.clone()))?
-                .model,
-        )),
+                .ok_or_else(|| ApiError::UnknownModel(name.clone()))?;
+            params.check_model(&loaded.model)?;
+            Some(Arc::clone(&loaded.model))
+        }
         _ => None,
     };
-    let limits = cfg.image;
-    let mask_bytes = parts.mask;
+    let mesh_limits = cfg.mesh;
     let task = tokio::task::spawn_blocking(move || {
+        // The mesh first: its reading is bounded by its declared counts,
+        // checked against its bytes and the limits before any allocation.
+        let mesh = Mesh::parse_within(&mesh, &mesh_limits, &Deadline::at(deadline))?;
         let image = decode(&image, &limits)?;
-        let mask = mask_bytes.map(|b| decode_mask(&b, &limits)).transpose()?;
-        // Checked here so that a bad request is refused before it queues.
-        params.check((image.width(), image.height()), mask.as_ref())?;
-        let mesh = Mesh::parse(&mesh)?;
-        params.check_projection(&mesh, (image.width(), image.height()))?;
+        let mask = mask_bytes
+            .map(|b| decode_mask(&b, &limits, Some(size)))
+            .transpose()?;
+        params.check_projection(&mesh, size)?;
         Ok::<_, ApiError>(PoseTask {
             image: Arc::new(image),
             mesh,
@@ -206,6 +227,7 @@ mod tests {
             "timeout_ms=x",
             "timeout_ms=20000",
             "model=cup",
+            "timeout_ms=100&timeout_ms=200",
         ] {
             assert!(
                 matches!(parse_query(Some(bad), max), Err(ApiError::BadRequest(_))),

@@ -7,7 +7,6 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use prometheus::Registry;
-use serde::Serialize;
 use sha2::{Digest, Sha256};
 use thiserror::Error;
 
@@ -15,8 +14,9 @@ use super::body::Pacing;
 use super::conn::ConnLimits;
 use super::image::ImageLimits;
 use super::metrics::HttpMetrics;
-use crate::infer::Infer;
+use crate::infer::{Infer, Lane};
 use crate::model::{Model, ModelError};
+use crate::pose::MeshLimits;
 
 /// Limits and defaults of the HTTP layer.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -27,6 +27,9 @@ pub struct HttpConfig {
     /// bytes: scanned meshes are large.
     pub max_pose_body_bytes: usize,
     pub image: ImageLimits,
+    /// Largest mesh of `POST /pose`, checked from the counts its file
+    /// declares before anything is allocated.
+    pub mesh: MeshLimits,
     /// Deadline of a request that sets no `timeout_ms`.
     pub default_timeout: Duration,
     /// Largest `timeout_ms` a request may ask for.
@@ -48,6 +51,7 @@ impl Default for HttpConfig {
             max_body_bytes: 20 << 20,
             max_pose_body_bytes: 64 << 20,
             image: ImageLimits::default(),
+            mesh: DEFAULT_MESH_LIMITS,
             default_timeout: Duration::from_secs(30),
             max_timeout: Duration::from_secs(300),
             max_detections: 100,
@@ -57,6 +61,15 @@ impl Default for HttpConfig {
         }
     }
 }
+
+/// The service's default mesh limits: a scanned mesh of a million
+/// triangles keeps a pose request within about 300 MB (measured, see
+/// docs/benchmarks.md); the pose needs only the outline at image
+/// resolution, so larger meshes are better simplified by the client.
+pub const DEFAULT_MESH_LIMITS: MeshLimits = MeshLimits {
+    max_vertices: 1_000_000,
+    max_triangles: 1_000_000,
+};
 
 /// A model loaded from its weights file.
 pub struct LoadedModel {
@@ -135,22 +148,27 @@ pub struct AppState {
 }
 
 /// Why the service is not ready, if it is not.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NotReady {
     WarmingUp,
     ShuttingDown,
     BackendUnhealthy,
     Overrunning,
+    /// Every place of a lane is taken: its requests would be refused.
+    Saturated(Lane, usize),
 }
 
 impl NotReady {
-    pub fn reason(self) -> &'static str {
+    pub fn reason(self) -> String {
         match self {
-            NotReady::WarmingUp => "models are warming up",
-            NotReady::ShuttingDown => "shutting down",
-            NotReady::BackendUnhealthy => "the compute backend failed",
-            NotReady::Overrunning => "a computation is running past its deadline",
+            NotReady::WarmingUp => "models are warming up".into(),
+            NotReady::ShuttingDown => "shutting down".into(),
+            NotReady::BackendUnhealthy => "the compute backend failed".into(),
+            NotReady::Overrunning => "a computation is running past its deadline".into(),
+            NotReady::Saturated(lane, places) => format!(
+                "the {} lane is saturated (all {places} places taken)",
+                lane.name()
+            ),
         }
     }
 }
@@ -184,6 +202,8 @@ impl AppState {
             Err(NotReady::Overrunning)
         } else if !self.ready.load(Ordering::Acquire) {
             Err(NotReady::WarmingUp)
+        } else if let Some((lane, places)) = self.infer.saturated() {
+            Err(NotReady::Saturated(lane, places))
         } else {
             Ok(())
         }

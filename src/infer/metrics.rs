@@ -1,6 +1,8 @@
 //! Prometheus metrics of the queue (prefix `sdhop_`, bounded label values).
 
-use prometheus::{Histogram, HistogramOpts, IntCounterVec, IntGauge, Opts, Registry};
+use prometheus::{Histogram, HistogramOpts, IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry};
+
+use super::Lane;
 
 /// The queue's metrics, registered in the service's registry.
 #[derive(Clone)]
@@ -12,6 +14,13 @@ pub struct InferMetrics {
     /// Requests by outcome: completed, failed, expired, cancelled, rejected.
     pub jobs: IntCounterVec,
     pub backend_healthy: IntGauge,
+    /// Places taken per lane (detect: waiting for the worker; pose:
+    /// admitted and not yet answered).
+    pub lane_taken: IntGaugeVec,
+    /// Places per lane: a lane is saturated when every one is taken.
+    pub lane_capacity: IntGaugeVec,
+    /// Requests refused because their lane was full.
+    pub lane_rejected: IntCounterVec,
 }
 
 /// Latency buckets in seconds, 1 ms to 60 s.
@@ -49,14 +58,63 @@ impl InferMetrics {
                 "sdhop_backend_healthy",
                 "1 while the compute backend works",
             )?,
+            lane_taken: IntGaugeVec::new(
+                Opts::new(
+                    "sdhop_lane_taken",
+                    "Places taken per lane (detect: waiting for the worker; pose: admitted, not yet answered)",
+                ),
+                &["lane"],
+            )?,
+            lane_capacity: IntGaugeVec::new(
+                Opts::new(
+                    "sdhop_lane_capacity",
+                    "Places per lane; the lane is saturated when all are taken",
+                ),
+                &["lane"],
+            )?,
+            lane_rejected: IntCounterVec::new(
+                Opts::new(
+                    "sdhop_lane_rejected_total",
+                    "Requests refused because their lane was full",
+                ),
+                &["lane"],
+            )?,
         };
+        for lane in Lane::ALL {
+            m.set_lane(lane, 0);
+            m.lane_rejected.with_label_values(&[lane.name()]);
+        }
         registry.register(Box::new(m.queue_size.clone()))?;
         registry.register(Box::new(m.queue_duration.clone()))?;
         registry.register(Box::new(m.compute_duration.clone()))?;
         registry.register(Box::new(m.batch_size.clone()))?;
         registry.register(Box::new(m.jobs.clone()))?;
         registry.register(Box::new(m.backend_healthy.clone()))?;
+        registry.register(Box::new(m.lane_taken.clone()))?;
+        registry.register(Box::new(m.lane_capacity.clone()))?;
+        registry.register(Box::new(m.lane_rejected.clone()))?;
         Ok(m)
+    }
+
+    /// `taken` places of `lane` are taken now.
+    pub fn set_lane(&self, lane: Lane, taken: usize) {
+        if lane == Lane::Detect {
+            self.queue_size.set(taken as i64);
+        }
+        self.lane_taken
+            .with_label_values(&[lane.name()])
+            .set(taken as i64);
+    }
+
+    pub fn set_capacity(&self, lane: Lane, places: usize) {
+        self.lane_capacity
+            .with_label_values(&[lane.name()])
+            .set(places as i64);
+    }
+
+    /// One request refused because `lane` was full.
+    pub fn reject(&self, lane: Lane) {
+        self.lane_rejected.with_label_values(&[lane.name()]).inc();
     }
 
     /// Counts one request with `outcome`.

@@ -1,8 +1,19 @@
-//! The inference queue: admission before any work, a bounded queue,
+//! The inference queue: admission before any work, bounded lanes,
 //! per-request deadlines, batching with a size cap and a maximum delay, and
 //! one worker thread that owns the compute backend. CPU-heavy work (the
 //! backend's pyramids, then the vision layer's min-cuts and masks) runs on
 //! that thread and the rayon pool, never on the async runtime's threads.
+//!
+//! Two lanes, so that a kind of request that costs seconds cannot take
+//! every worker from one that costs milliseconds:
+//! - **detect**: `POST /detect`, [`InferConfig::queue_size`] places, held
+//!   from admission until the worker takes the request;
+//! - **pose**: `POST /pose`, [`InferConfig::pose_queue_size`] places, held
+//!   from admission until the answer. A pose's detection (for its mask, or
+//!   its start poses) runs on the worker, which alternates between the
+//!   lanes (a batch of detections, then one pose's detection), and its
+//!   refinement on a pool of its own ([`InferConfig::pose_threads`]
+//!   threads), never on the worker.
 //!
 //! Admission comes first: a caller takes a [`Permit`] before it reads or
 //! decodes anything, and a full queue refuses it at once
@@ -12,17 +23,18 @@
 //! request whose caller went away (its reply channel closed) is dropped
 //! unseen.
 
+pub mod memory;
 mod metrics;
 mod queue;
 
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::{self, Sender};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use thiserror::Error;
-use tokio::sync::oneshot;
+use tokio::sync::{oneshot, watch};
 
 use crate::backend::{Backend, BackendError, BackendInfo};
 use crate::model::Model;
@@ -46,6 +58,11 @@ pub struct InferConfig {
     /// How long the worker waits for more requests to fill a batch once it
     /// has one.
     pub max_batch_delay: Duration,
+    /// Pose requests admitted at once (waiting or computing); more are
+    /// refused with `Overloaded` while detections are still admitted.
+    pub pose_queue_size: usize,
+    /// Pose refinements computed at once: the threads of the pose pool.
+    pub pose_threads: usize,
 }
 
 impl Default for InferConfig {
@@ -54,6 +71,26 @@ impl Default for InferConfig {
             queue_size: 32,
             max_batch: 4,
             max_batch_delay: Duration::from_millis(2),
+            pose_queue_size: 8,
+            pose_threads: 1,
+        }
+    }
+}
+
+/// The kinds of request, each with its own places.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lane {
+    Detect,
+    Pose,
+}
+
+impl Lane {
+    pub const ALL: [Lane; 2] = [Lane::Detect, Lane::Pose];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Lane::Detect => "detect",
+            Lane::Pose => "pose",
         }
     }
 }
@@ -61,8 +98,8 @@ impl Default for InferConfig {
 /// Why a request was not answered with a result.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum InferError {
-    #[error("the inference queue is full")]
-    Overloaded,
+    #[error("the {} lane of the inference queue is full", .0.name())]
+    Overloaded(Lane),
     #[error("the service is shutting down")]
     ShuttingDown,
     #[error("the request's deadline passed before it was computed")]
@@ -127,6 +164,12 @@ struct Job {
 }
 
 impl Work {
+    /// A pose that needs the worker's detection first (for its mask, or
+    /// for its start poses).
+    fn needs_detection(&self) -> bool {
+        matches!(self, Work::Pose(t, _) if t.model.is_some())
+    }
+
     /// The caller stopped waiting: its reply channel is closed.
     fn closed(&self) -> bool {
         match self {
@@ -148,28 +191,52 @@ impl Work {
     }
 }
 
-/// A place in the queue, from admission until the job is queued (or the
-/// request is given up, when it is dropped).
+/// A place in a lane: in the detect lane from admission until the job is
+/// queued (then the job holds it until the worker takes it), in the pose
+/// lane until the permit is dropped (the request answered or given up).
 pub struct Permit {
     shared: Arc<Shared>,
+    lane: Lane,
     held: bool,
 }
 
 impl Drop for Permit {
     fn drop(&mut self) {
         if self.held {
-            let n = self.shared.queued.fetch_sub(1, Ordering::AcqRel) - 1;
-            self.shared.metrics.queue_size.set(n as i64);
+            self.shared.release(self.lane, 1);
         }
     }
+}
+
+/// The worker's inbound jobs, by lane.
+struct Lanes {
+    detect: VecDeque<Job>,
+    pose: VecDeque<Job>,
+    /// No more jobs come: the worker ends once both lanes are empty.
+    closed: bool,
+}
+
+/// The lanes and the signal that a job arrived (or they closed).
+struct Inbox {
+    lanes: Mutex<Lanes>,
+    arrived: Condvar,
 }
 
 /// State shared by the handle and the worker.
 struct Shared {
     config: InferConfig,
-    sender: Mutex<Option<Sender<Job>>>,
-    /// Permits held: requests admitted and not yet taken by the worker.
+    inbox: Inbox,
+    /// Places taken in the detect lane: requests admitted and not yet
+    /// taken by the worker.
     queued: AtomicUsize,
+    /// Places taken in the pose lane: pose requests admitted and not yet
+    /// answered.
+    poses: AtomicUsize,
+    /// The pool that refines poses.
+    pose_pool: rayon::ThreadPool,
+    /// Set when the shutdown's grace period ends: every request still
+    /// waiting is answered `ShuttingDown`.
+    cut: watch::Sender<bool>,
     accepting: AtomicBool,
     backend_healthy: AtomicBool,
     backend_info: std::sync::RwLock<BackendInfo>,
@@ -192,6 +259,20 @@ impl Drop for Busy<'_> {
 }
 
 impl Shared {
+    fn counter(&self, lane: Lane) -> (&AtomicUsize, usize) {
+        match lane {
+            Lane::Detect => (&self.queued, self.config.queue_size),
+            Lane::Pose => (&self.poses, self.config.pose_queue_size),
+        }
+    }
+
+    /// Gives `n` places of `lane` back.
+    fn release(&self, lane: Lane, n: usize) {
+        let (counter, _) = self.counter(lane);
+        let left = counter.fetch_sub(n, Ordering::AcqRel).saturating_sub(n);
+        self.metrics.set_lane(lane, left);
+    }
+
     /// The worker computes a batch whose last deadline is `deadline`.
     pub(crate) fn busy(&self, deadline: Option<Instant>) -> Busy<'_> {
         let us = deadline.map_or(u64::MAX, |d| {
@@ -217,17 +298,38 @@ impl Infer {
         config: InferConfig,
         metrics: InferMetrics,
     ) -> Result<Self, InferError> {
-        if config.queue_size == 0 || config.max_batch == 0 {
+        if config.queue_size == 0
+            || config.max_batch == 0
+            || config.pose_queue_size == 0
+            || config.pose_threads == 0
+        {
             return Err(InferError::Internal(
-                "queue size and batch size must be at least 1".into(),
+                "queue sizes, batch size and pose threads must be at least 1".into(),
             ));
         }
+        let pose_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.pose_threads)
+            .thread_name(|i| format!("sdhop-pose-{i}"))
+            .build()
+            .map_err(|e| InferError::Internal(format!("cannot start the pose pool: {e}")))?;
+        for lane in Lane::ALL {
+            metrics.set_capacity(lane, shared_capacity(&config, lane));
+        }
         // Unbounded: the permits bound what is in it.
-        let (tx, rx) = mpsc::channel();
         let shared = Arc::new(Shared {
             config,
-            sender: Mutex::new(Some(tx)),
+            inbox: Inbox {
+                lanes: Mutex::new(Lanes {
+                    detect: VecDeque::new(),
+                    pose: VecDeque::new(),
+                    closed: false,
+                }),
+                arrived: Condvar::new(),
+            },
             queued: AtomicUsize::new(0),
+            poses: AtomicUsize::new(0),
+            pose_pool,
+            cut: watch::Sender::new(false),
             accepting: AtomicBool::new(true),
             backend_healthy: AtomicBool::new(backend.healthy()),
             backend_info: std::sync::RwLock::new(backend.info()),
@@ -239,7 +341,7 @@ impl Infer {
         let worker_shared = Arc::clone(&shared);
         let handle = std::thread::Builder::new()
             .name("sdhop-infer".into())
-            .spawn(move || queue::run(rx, backend, &worker_shared))
+            .spawn(move || queue::run(backend, &worker_shared))
             .map_err(|e| InferError::Internal(format!("cannot start the worker: {e}")))?;
         Ok(Self {
             shared,
@@ -280,38 +382,56 @@ impl Infer {
         self.shared.queued.load(Ordering::Acquire)
     }
 
+    /// Places taken in `lane` and its capacity.
+    pub fn lane(&self, lane: Lane) -> (usize, usize) {
+        let (counter, cap) = self.shared.counter(lane);
+        (counter.load(Ordering::Acquire), cap)
+    }
+
+    /// The first lane whose every place is taken, if any.
+    pub fn saturated(&self) -> Option<(Lane, usize)> {
+        Lane::ALL.into_iter().find_map(|l| {
+            let (n, cap) = self.lane(l);
+            (n >= cap).then_some((l, cap))
+        })
+    }
+
     /// New requests are admitted.
     pub fn accepting(&self) -> bool {
         self.shared.accepting.load(Ordering::Acquire)
     }
 
-    /// Admission: a place in the queue, refused at once when it is full or
-    /// the service is shutting down. Take it before doing any work for the
-    /// request; dropping it gives the place back.
+    /// Admission to the detect lane (see [`Self::admit_to`]).
     pub fn admit(&self) -> Result<Permit, InferError> {
+        self.admit_to(Lane::Detect)
+    }
+
+    /// Admission: a place in `lane`, refused at once when the lane is full
+    /// or the service is shutting down. Take it before doing any work for
+    /// the request; dropping it gives the place back.
+    pub fn admit_to(&self, lane: Lane) -> Result<Permit, InferError> {
         let m = &self.shared.metrics;
         if !self.accepting() {
             m.job("rejected");
             return Err(InferError::ShuttingDown);
         }
-        let cap = self.shared.config.queue_size;
-        let taken = self
-            .shared
-            .queued
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
-                (n < cap).then_some(n + 1)
-            });
+        let (counter, cap) = self.shared.counter(lane);
+        let taken = counter.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+            (n < cap).then_some(n + 1)
+        });
         match taken {
             Ok(n) => {
-                m.queue_size.set(n as i64 + 1);
+                m.set_lane(lane, n + 1);
                 Ok(Permit {
                     shared: Arc::clone(&self.shared),
+                    lane,
                     held: true,
                 })
             }
             Err(_) => {
                 m.job("rejected");
-                Err(InferError::Overloaded)
+                m.reject(lane);
+                Err(InferError::Overloaded(lane))
             }
         }
     }
@@ -325,40 +445,100 @@ impl Infer {
     ) -> Result<DetectResponse, InferError> {
         let (tx, rx) = oneshot::channel();
         self.enqueue(permit, Work::Detect(task, tx), deadline)?;
-        wait(rx, deadline).await
+        self.wait(rx, deadline).await
     }
 
-    /// Refines a pose; waits at most until `deadline`.
+    /// Refines a pose with a permit of the pose lane (held until the
+    /// answer); waits at most until `deadline`. A pose that needs a
+    /// detection queues for the worker first; one that does not goes to
+    /// the pose pool at once.
     pub async fn pose(
         &self,
         permit: Permit,
         task: PoseTask,
         deadline: Instant,
     ) -> Result<PoseResponse, InferError> {
+        if permit.lane != Lane::Pose {
+            return Err(InferError::Internal(
+                "a pose needs a place in the pose lane".into(),
+            ));
+        }
         let (tx, rx) = oneshot::channel();
-        self.enqueue(permit, Work::Pose(Box::new(task), tx), deadline)?;
-        wait(rx, deadline).await
-    }
-
-    /// Puts an admitted job in the queue; its permit's place passes to the
-    /// job (the worker gives it back when it takes the job).
-    fn enqueue(&self, mut permit: Permit, work: Work, deadline: Instant) -> Result<(), InferError> {
         let job = Job {
-            work,
+            work: Work::Pose(Box::new(task), tx),
             enqueued: Instant::now(),
             deadline,
         };
-        let guard = self
-            .shared
-            .sender
-            .lock()
-            .map_err(|_| InferError::Internal("queue lock poisoned".into()))?;
-        let Some(tx) = guard.as_ref() else {
-            return Err(InferError::ShuttingDown);
-        };
-        tx.send(job).map_err(|_| InferError::ShuttingDown)?;
+        if job.work.needs_detection() {
+            self.push(job)?;
+        } else {
+            queue::refine_later(&self.shared, job, Instant::now(), None);
+        }
+        let result = self.wait(rx, deadline).await;
+        drop(permit);
+        result
+    }
+
+    /// Puts an admitted detection in the detect lane; its permit's place
+    /// passes to the job (the worker gives it back when it takes the job).
+    fn enqueue(&self, mut permit: Permit, work: Work, deadline: Instant) -> Result<(), InferError> {
+        if permit.lane != Lane::Detect {
+            return Err(InferError::Internal(
+                "a detection needs a place in the detect lane".into(),
+            ));
+        }
+        self.push(Job {
+            work,
+            enqueued: Instant::now(),
+            deadline,
+        })?;
         permit.held = false;
         Ok(())
+    }
+
+    /// Hands a job to the worker, in its lane.
+    fn push(&self, job: Job) -> Result<(), InferError> {
+        let inbox = &self.shared.inbox;
+        let mut lanes = inbox
+            .lanes
+            .lock()
+            .map_err(|_| InferError::Internal("queue lock poisoned".into()))?;
+        if lanes.closed {
+            return Err(InferError::ShuttingDown);
+        }
+        match job.work {
+            Work::Detect(..) => lanes.detect.push_back(job),
+            Work::Pose(..) => lanes.pose.push_back(job),
+        }
+        drop(lanes);
+        inbox.arrived.notify_one();
+        Ok(())
+    }
+
+    /// The worker's answer, or a deadline error when it comes too late, or
+    /// `ShuttingDown` once the shutdown's grace period has ended.
+    async fn wait<T>(
+        &self,
+        rx: oneshot::Receiver<Result<T, InferError>>,
+        deadline: Instant,
+    ) -> Result<T, InferError> {
+        let mut cut = self.shared.cut.subscribe();
+        let cut_now = async move {
+            // Resolves once the cut is set (or can no longer be).
+            let _ = cut.wait_for(|&c| c).await;
+        };
+        tokio::select! {
+            r = tokio::time::timeout_at(deadline.into(), rx) => match r {
+                Ok(Ok(result)) => result,
+                Ok(Err(_)) => Err(InferError::Internal(
+                    "the worker dropped the request".into(),
+                )),
+                // Dropping the receiver here tells the worker not to
+                // compute it.
+                Err(_) => Err(InferError::DeadlineExceeded),
+            },
+            () = cut_now => Err(InferError::ShuttingDown),
+        }
     }
 
     /// Stops admitting requests; those already queued are still computed.
@@ -366,14 +546,22 @@ impl Infer {
         self.shared.accepting.store(false, Ordering::Release);
     }
 
+    /// Answers every request still waiting with `ShuttingDown` (the end of
+    /// the shutdown's grace period); nothing is computed for them any
+    /// more, since their callers are gone.
+    pub fn cut_waiting(&self) {
+        self.shared.cut.send_replace(true);
+    }
+
     /// Stops admitting, lets the worker finish the queue, and waits for it
     /// at most `grace`. Returns whether the worker finished in time.
     pub async fn shutdown(&self, grace: Duration) -> bool {
         self.stop_admitting();
-        if let Ok(mut s) = self.shared.sender.lock() {
-            // Closing the channel ends the worker once the queue is empty.
-            s.take();
+        if let Ok(mut lanes) = self.shared.inbox.lanes.lock() {
+            // The worker ends once the lanes are empty.
+            lanes.closed = true;
         }
+        self.shared.inbox.arrived.notify_all();
         let handle = self.worker.lock().ok().and_then(|mut h| h.take());
         let Some(handle) = handle else {
             return true;
@@ -383,18 +571,11 @@ impl Infer {
     }
 }
 
-/// The worker's answer, or a deadline error when it comes too late.
-async fn wait<T>(
-    rx: oneshot::Receiver<Result<T, InferError>>,
-    deadline: Instant,
-) -> Result<T, InferError> {
-    match tokio::time::timeout_at(deadline.into(), rx).await {
-        Ok(Ok(result)) => result,
-        Ok(Err(_)) => Err(InferError::Internal(
-            "the worker dropped the request".into(),
-        )),
-        // Dropping the receiver here tells the worker not to compute it.
-        Err(_) => Err(InferError::DeadlineExceeded),
+/// The places of `lane` in `config`.
+fn shared_capacity(config: &InferConfig, lane: Lane) -> usize {
+    match lane {
+        Lane::Detect => config.queue_size,
+        Lane::Pose => config.pose_queue_size,
     }
 }
 

@@ -1,16 +1,17 @@
-//! The worker loop: takes a batch off the queue, drops what no longer needs
-//! computing, asks the backend for the batch's pyramids, then runs the
-//! vision layer's detection (or the pose refinement) of each request and
-//! answers it.
+//! The worker loop: takes a batch off a lane (alternating between them),
+//! drops what no longer needs computing, asks the backend for the batch's
+//! pyramids, then runs the vision layer's detection of each request and
+//! answers it, or hands a pose's refinement to the pose pool.
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::{InferError, Job, PoseTask, Shared, Work};
+use super::memory::{self, LARGE_MESH_TRIANGLES};
+use super::{InferError, Job, Lane, PoseTask, Shared, Work};
 use crate::backend::{model_bounds, Backend, FeatureJob};
 use crate::model::Model;
 use crate::pipeline::{detect_prebuilt_with, feature_settings, DetectOptions};
@@ -21,26 +22,127 @@ use crate::vision::image::ColorImage;
 use crate::vision::pyramid::FeaturePyramid;
 use crate::vision::Deadline;
 
-/// Runs until the queue's channel is closed and empty.
-pub(super) fn run(rx: Receiver<Job>, mut backend: Box<dyn Backend>, shared: &Shared) {
-    while let Ok(first) = rx.recv() {
-        let mut batch = vec![first];
-        let until = Instant::now() + shared.config.max_batch_delay;
-        while batch.len() < shared.config.max_batch {
-            let now = Instant::now();
-            let next = if now >= until {
-                rx.try_recv().map_err(|_| RecvTimeoutError::Timeout)
-            } else {
-                rx.recv_timeout(until - now)
-            };
-            match next {
-                Ok(job) => batch.push(job),
-                Err(_) => break,
-            }
-        }
-        let left = shared.queued.fetch_sub(batch.len(), Ordering::AcqRel) - batch.len();
-        shared.metrics.queue_size.set(left as i64);
+/// Runs until the lanes are closed and empty.
+pub(super) fn run(mut backend: Box<dyn Backend>, shared: &Arc<Shared>) {
+    let mut pose_turn = false;
+    while let Some(batch) = next_batch(shared, &mut pose_turn) {
         process(batch, backend.as_mut(), shared);
+    }
+}
+
+/// The next batch: one pose's detection when it is the pose lane's turn
+/// (or the detect lane is empty), else up to `max_batch` detections (after
+/// waiting at most `max_batch_delay` for more). The lanes take turns, so a
+/// detection waits for at most one pose's detection. `None` once the
+/// lanes are closed and empty.
+fn next_batch(shared: &Shared, pose_turn: &mut bool) -> Option<Vec<Job>> {
+    let inbox = &shared.inbox;
+    let mut lanes = inbox.lanes.lock().unwrap_or_else(|e| e.into_inner());
+    while lanes.detect.is_empty() && lanes.pose.is_empty() {
+        if lanes.closed {
+            return None;
+        }
+        lanes = inbox.arrived.wait(lanes).unwrap_or_else(|e| e.into_inner());
+    }
+    if !lanes.pose.is_empty() && (*pose_turn || lanes.detect.is_empty()) {
+        *pose_turn = false;
+        return lanes.pose.pop_front().map(|job| vec![job]);
+    }
+    *pose_turn = true;
+    let mut batch: Vec<Job> = lanes.detect.pop_front().into_iter().collect();
+    let until = Instant::now() + shared.config.max_batch_delay;
+    while batch.len() < shared.config.max_batch {
+        if let Some(job) = lanes.detect.pop_front() {
+            batch.push(job);
+            continue;
+        }
+        let now = Instant::now();
+        if now >= until || lanes.closed {
+            break;
+        }
+        lanes = inbox
+            .arrived
+            .wait_timeout(lanes, until - now)
+            .map(|(l, _)| l)
+            .unwrap_or_else(|e| e.into_inner().0);
+    }
+    drop(lanes);
+    shared.release(Lane::Detect, batch.len());
+    Some(batch)
+}
+
+/// Refines a pose on the pose pool, with the detection it needed (`None`
+/// when it needed none), and answers it. A pose whose deadline passed or
+/// whose caller left while it waited for the pool is not computed.
+pub(super) fn refine_later(
+    shared: &Arc<Shared>,
+    job: Job,
+    start: Instant,
+    found: Option<Result<Detected, InferError>>,
+) {
+    let worker = Arc::clone(shared);
+    shared.pose_pool.spawn(move || {
+        let shared = worker;
+        let metrics = &shared.metrics;
+        // However the job ends, a large mesh's pages go back once it is
+        // dropped (the guard is dropped last, after everything below).
+        let large =
+            matches!(&job.work, Work::Pose(t, _) if t.mesh.triangles.len() > LARGE_MESH_TRIANGLES);
+        let _release = large.then(|| ReleaseOnDrop(&shared.pose_pool));
+        let Job { work, deadline, .. } = job;
+        let Work::Pose(task, tx) = work else {
+            work.fail(InferError::Internal("not a pose".into()));
+            return;
+        };
+        if tx.is_closed() {
+            metrics.job("cancelled");
+            return;
+        }
+        if Instant::now() >= deadline {
+            metrics.job("expired");
+            let _ = tx.send(Err(InferError::DeadlineExceeded));
+            return;
+        }
+        let deadline = Deadline::at(deadline);
+        let result = catch_unwind(AssertUnwindSafe(|| {
+            let PoseTask {
+                image,
+                mesh,
+                params,
+                mask,
+                ..
+            } = *task;
+            let found = found.transpose()?;
+            estimate_with(
+                &image,
+                &mesh,
+                &params,
+                mask,
+                |name| found.ok_or_else(|| PoseError::UnknownModel(name.to_string())),
+                deadline,
+            )
+            .map_err(InferError::from)
+        }))
+        .unwrap_or_else(|_| Err(InferError::Internal("pose refinement failed".into())));
+        metrics.job(if result.is_ok() {
+            "completed"
+        } else {
+            "failed"
+        });
+        metrics
+            .compute_duration
+            .observe(start.elapsed().as_secs_f64());
+        let _ = tx.send(result);
+    });
+}
+
+/// Hands the pose pool's freed pages back when dropped (after the job's
+/// own buffers are gone).
+struct ReleaseOnDrop<'a>(&'a rayon::ThreadPool);
+
+impl Drop for ReleaseOnDrop<'_> {
+    fn drop(&mut self) {
+        memory::release_freed_pages_of(self.0);
     }
 }
 
@@ -75,7 +177,7 @@ impl Work {
 /// Computes one batch and answers every request in it: the backend builds
 /// the pyramids (and bounds) of every detection in the batch, then the
 /// detections and pose refinements run on the rayon pool.
-fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
+fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Arc<Shared>) {
     let now = Instant::now();
     let metrics = &shared.metrics;
     let mut live = Vec::with_capacity(batch.len());
@@ -212,41 +314,28 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Shared) {
                     ok
                 }
                 Work::Pose(task, tx) => {
-                    let result = catch_unwind(AssertUnwindSafe(|| {
-                        let PoseTask {
-                            image,
-                            mesh,
-                            params,
-                            mask,
-                            model,
-                        } = *task;
-                        let found = match &model {
-                            Some(m) => Some(Detected::from_response(
-                                detect(
-                                    &[m.as_ref()],
-                                    &DetectOptions {
-                                        deadline,
-                                        ..params.detect_options(&mesh)
-                                    },
-                                )?,
-                                m,
-                            )),
-                            None => None,
-                        };
-                        estimate_with(
-                            &image,
-                            &mesh,
-                            &params,
-                            mask,
-                            |name| found.ok_or_else(|| PoseError::UnknownModel(name.to_string())),
+                    // The detection here, on the backend's pyramids; the
+                    // refinement on the pose pool, so that the worker goes
+                    // back to the lanes.
+                    let found = catch_unwind(AssertUnwindSafe(|| {
+                        let m = task
+                            .model
+                            .as_ref()
+                            .ok_or_else(|| InferError::Internal("no model".into()))?;
+                        let opts = DetectOptions {
                             deadline,
-                        )
-                        .map_err(InferError::from)
+                            ..task.params.detect_options(&task.mesh)
+                        };
+                        Ok(Detected::from_response(detect(&[m.as_ref()], &opts)?, m))
                     }))
-                    .unwrap_or_else(|_| Err(InferError::Internal("pose refinement failed".into())));
-                    let ok = result.is_ok();
-                    let _ = tx.send(result);
-                    ok
+                    .unwrap_or_else(|_| Err(InferError::Internal("detection failed".into())));
+                    let job = Job {
+                        work: Work::Pose(task, tx),
+                        enqueued: start,
+                        deadline: deadline.instant().unwrap_or(start),
+                    };
+                    refine_later(shared, job, start, Some(found));
+                    return;
                 }
             };
             metrics.job(if ok { "completed" } else { "failed" });

@@ -45,6 +45,17 @@ pub enum MaskSource {
     None,
 }
 
+impl MaskSource {
+    /// The name as clients write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            MaskSource::Detect => "detect",
+            MaskSource::Provided => "provided",
+            MaskSource::None => "none",
+        }
+    }
+}
+
 /// The `params` of a pose request.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -78,10 +89,11 @@ pub struct PoseParams {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StartUncertainty {
-    /// Of its rotation, degrees (default 5; 0: no prior).
+    /// Of its rotation, degrees (default 5; 0: no prior on the rotation).
     #[serde(default)]
     pub degrees: Option<f64>,
-    /// Of its translation, mesh units (default 5% of the diagonal of the
+    /// Of its translation, mesh units (0: no prior on the translation;
+    /// default 5% of the diagonal of the
     /// mesh's bounding box).
     #[serde(default)]
     pub translation: Option<f64>,
@@ -126,7 +138,7 @@ pub struct PoseResponse {
     pub starts_refined: Option<usize>,
     /// How well the image supports the answered pose: the share of its
     /// visible model edge samples (in the mask) with a compatible image
-    /// edge within 1.5 px (see the README for the cut-off measured on
+    /// edge within 1.5 px (see docs/design.md for the cut-off measured on
     /// LM-O).
     pub score: f64,
     /// The same share at the initial pose: how well the image supports the
@@ -253,7 +265,7 @@ impl PoseParams {
             None => Ok(None),
             Some(l) if labels.contains(l) => Ok(Some(l.as_str())),
             Some(l) => Err(PoseError::InvalidParameter(format!(
-                "label {l} is not among the labels of model {} ({})",
+                "label {l:?} is not among the labels of model {} ({})",
                 self.model.as_deref().unwrap_or_default(),
                 labels.join(", ")
             ))),
@@ -286,14 +298,44 @@ impl PoseParams {
         }
     }
 
-    /// Checks the parameters against the image's size and the mask the
-    /// client sent (if any). Without an explicit `mask`, a sent mask is
-    /// used and otherwise none; a sent mask with `mask` other than
-    /// `"provided"` is refused rather than ignored.
+    /// Checks `model` and `label` against the named model's labels before
+    /// any work: a model of several objects needs the mesh's object named
+    /// without an initial pose, and a label must be one of the model's.
+    pub fn check_labels(&self, labels: &[String]) -> Result<(), PoseError> {
+        self.label_of(labels)?;
+        if self.initial_pose.is_none() && labels.len() > 1 && self.label.is_none() {
+            return Err(PoseError::InvalidParameter(format!(
+                "model {} detects several objects ({}): name the mesh's object in label",
+                self.model.as_deref().unwrap_or_default(),
+                labels.join(", ")
+            )));
+        }
+        Ok(())
+    }
+
+    /// Checks the request against the model its detection will run
+    /// (before any work): the labels (see [`Self::check_labels`]) and,
+    /// without an initial pose, that the model carries the training views
+    /// that give the start poses.
+    pub fn check_model(&self, model: &Model) -> Result<(), PoseError> {
+        self.check_labels(&model.labels())?;
+        if self.initial_pose.is_none()
+            && model.meta.viewpoints.iter().all(|v| v.rotations.is_empty())
+        {
+            return Err(no_views(&model.meta.name));
+        }
+        Ok(())
+    }
+
+    /// Checks the parameters against the image's size and the size of the
+    /// mask the client sent (if any). Without an explicit `mask`, a sent
+    /// mask is used and otherwise none; a sent mask with `mask` other than
+    /// `"provided"` is refused rather than ignored, and so are `model` and
+    /// `label` where no detection uses them.
     pub fn check(
         &self,
         image_size: (usize, usize),
-        mask: Option<&Mask>,
+        mask: Option<(usize, usize)>,
     ) -> Result<Checked, PoseError> {
         let initial = self
             .initial_pose
@@ -333,17 +375,17 @@ impl PoseParams {
                 ))
             }
             (MaskSource::Provided, Some(m)) => {
-                if (m.width, m.height) != image_size {
+                if m != image_size {
                     return Err(PoseError::InvalidParameter(format!(
-                        "the mask is {}x{}, the image {}x{}",
-                        m.width, m.height, image_size.0, image_size.1
+                        "the mask is {}x{}, the image {}x{}: send a mask of the image's size",
+                        m.0, m.1, image_size.0, image_size.1
                     )));
                 }
             }
             (other, Some(_)) => {
                 return Err(PoseError::InvalidParameter(format!(
-                    "a mask image was sent but the parameters ask for mask {:?}",
-                    other
+                    "a mask image was sent but the parameters ask for mask \"{}\": leave mask out or ask for \"provided\"",
+                    other.name()
                 )))
             }
             (_, None) => {}
@@ -352,6 +394,20 @@ impl PoseParams {
             return Err(PoseError::InvalidParameter(
                 "mask \"detect\" needs a model name".into(),
             ));
+        }
+        if initial.is_some() && source != MaskSource::Detect {
+            let unused = match (&self.model, &self.label) {
+                (Some(_), Some(_)) => Some("model and label are"),
+                (Some(_), None) => Some("model is"),
+                (None, Some(_)) => Some("label is"),
+                (None, None) => None,
+            };
+            if let Some(what) = unused {
+                return Err(PoseError::InvalidParameter(format!(
+                    "{what} used only with mask \"detect\" or without initial_pose; this request refines its initial pose with mask \"{}\"",
+                    source.name()
+                )));
+            }
         }
         Ok(Checked {
             initial,
@@ -458,7 +514,10 @@ pub fn estimate_with<F>(
 where
     F: FnOnce(&str) -> Result<Detected, PoseError>,
 {
-    let checked = params.check((img.width(), img.height()), mask.as_ref())?;
+    let checked = params.check(
+        (img.width(), img.height()),
+        mask.as_ref().map(|m| (m.width, m.height)),
+    )?;
     params.check_projection(mesh, (img.width(), img.height()))?;
     let edges = EdgeModel::new(mesh, checked.irls.crease_degrees);
     let name = params.model.as_deref().unwrap_or_default();
@@ -478,12 +537,12 @@ where
                 .detections
                 .into_iter()
                 .find(|d| label.is_none_or(|l| d.label == l))
-                .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
+                .ok_or_else(|| not_detected(name, AROUND_START))?;
             let m = det
                 .mask
                 .as_ref()
                 .and_then(Mask::from_rle)
-                .ok_or_else(|| PoseError::NotDetected(name.to_string()))?;
+                .ok_or_else(|| not_detected(name, AROUND_START))?;
             (Some(m), MaskUsed::Detected, Some(det))
         }
     };
@@ -497,6 +556,29 @@ where
         deadline,
     )?;
     Ok(response(&r, used, detection, None))
+}
+
+/// A model without training views cannot give start poses.
+fn no_views(name: &str) -> PoseError {
+    PoseError::InvalidParameter(format!(
+        "model {name} carries no training views (it was not trained from a mesh by sdhop-train mesh), so it cannot give start poses: send initial_pose"
+    ))
+}
+
+/// Where a detection with an initial pose looks.
+const AROUND_START: (&str, &str) = (
+    "around the initial pose (its box overlapping the mesh's box there)",
+    "visibility mask",
+);
+/// Where a detection without an initial pose looks.
+const ANYWHERE: (&str, &str) = ("anywhere in the image", "start pose");
+
+fn not_detected(model: &str, (place, what): (&'static str, &'static str)) -> PoseError {
+    PoseError::NotDetected {
+        model: model.to_string(),
+        place,
+        what,
+    }
 }
 
 /// The answer of a refinement.
@@ -545,17 +627,10 @@ fn from_detections(
 ) -> Result<PoseResponse, PoseError> {
     let name = params.model.as_deref().unwrap_or_default();
     if found.view_rotations.iter().all(Vec::is_empty) {
-        return Err(PoseError::InvalidParameter(format!(
-            "model {name} carries no training views (it was not trained from a mesh by sdhop-train mesh), so it cannot give start poses: send initial_pose"
-        )));
+        return Err(no_views(name));
     }
+    params.check_labels(&found.labels)?;
     let label = params.label_of(&found.labels)?;
-    if found.labels.len() > 1 && label.is_none() {
-        return Err(PoseError::InvalidParameter(format!(
-            "model {name} detects several objects ({}): name the mesh's object in label",
-            found.labels.join(", ")
-        )));
-    }
     let mut best: Option<(PoseResult, DetectionJson, Pose)> = None;
     let mut refined = 0usize;
     let mut too_few: Option<PoseError> = None;
@@ -632,7 +707,7 @@ fn from_detections(
     // Detections whose starts all showed too few edges say so; none at
     // all is "not detected".
     let (r, det, start) =
-        best.ok_or_else(|| too_few.unwrap_or_else(|| PoseError::NotDetected(name.to_string())))?;
+        best.ok_or_else(|| too_few.unwrap_or_else(|| not_detected(name, ANYWHERE)))?;
     let used = match checked.source {
         MaskSource::Detect => MaskUsed::Detected,
         MaskSource::Provided => MaskUsed::Provided,
