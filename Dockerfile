@@ -12,6 +12,7 @@ RUN mkdir -p src/bin benches \
  && echo "fn main() {}" > benches/detect.rs \
  && echo "fn main() {}" > benches/backends.rs \
  && echo "fn main() {}" > benches/pose.rs \
+ && echo "fn main() {}" > benches/ko8_speed.rs \
  && cargo build --release --locked --bins \
  && rm -rf src benches
 COPY src ./src

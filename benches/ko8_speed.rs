@@ -1,5 +1,5 @@
 //! Detection speed on CMU_KO8 development photographs with the shipped
-//! models, as issue 22 measures it: per-image median time and the stage
+//! models, as the speed targets measure it: per-image median time and the stage
 //! breakdown for one model (cup) and all eight, at 1 and 2 threads, with
 //! refined masks; and the same for one model with pruning off, which must
 //! give the very same detections (exact pruning), to show what it saves.
