@@ -51,8 +51,8 @@ def main():
                 break
             time.sleep(0.05)
         info = json.loads(urllib.request.urlopen(base + "/info").read())["limits"]
-        print(f"pose lane: {info['pose_queue_size']} places, {info['pose_threads']} threads; "
-              f"detect lane: {info['queue_size']} places")
+        print(f"pose lane: {info.get('pose_queue_size', 'none')} places, "
+              f"{info.get('pose_threads', 'no')} threads; detect lane: {info['queue_size']} places")
 
         def pose(params, mask=None, query="?timeout_ms=30000"):
             parts = [("image", "image/png", photo), ("mesh", "application/octet-stream", mesh),

@@ -63,6 +63,17 @@ async fn pose(
     params: Value,
     query: &str,
 ) -> (u16, Value, Duration) {
+    pose_at(&server.base, png, mesh, params, query).await
+}
+
+/// [`pose`] to the server at `base`.
+async fn pose_at(
+    base: &str,
+    png: &[u8],
+    mesh: &[u8],
+    params: Value,
+    query: &str,
+) -> (u16, Value, Duration) {
     use reqwest::multipart::{Form, Part};
     let form = Form::new()
         .part("image", Part::bytes(png.to_vec()).file_name("scene.png"))
@@ -70,7 +81,7 @@ async fn pose(
         .text("params", params.to_string());
     let t = Instant::now();
     let r = reqwest::Client::new()
-        .post(server.url(&format!("/pose{query}")))
+        .post(format!("{base}/pose{query}"))
         .multipart(form)
         .send()
         .await
@@ -393,12 +404,11 @@ async fn sigterm_exits_within_the_grace_period_while_a_long_computation_runs() {
     }
 }
 
-/// The peak of this process's resident memory (MB) while `f` runs,
-/// sampled every 10 ms from /proc (the server runs in this process); 0
-/// where /proc is missing.
-async fn peak_rss_mb<F: std::future::Future>(f: F) -> (F::Output, f64) {
-    fn rss() -> f64 {
-        std::fs::read_to_string("/proc/self/status")
+/// The peak of process `pid`'s resident memory (MB) above its start while
+/// `f` runs, sampled every 10 ms from /proc; 0 where /proc is missing.
+async fn peak_rss_mb<F: std::future::Future>(pid: u32, f: F) -> (F::Output, f64) {
+    let rss = move || -> f64 {
+        std::fs::read_to_string(format!("/proc/{pid}/status"))
             .ok()
             .and_then(|s| {
                 s.lines()
@@ -406,7 +416,7 @@ async fn peak_rss_mb<F: std::future::Future>(f: F) -> (F::Output, f64) {
                     .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
             })
             .map_or(0.0, |kb| kb / 1024.0)
-    }
+    };
     let before = rss();
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let s = stop.clone();
@@ -446,14 +456,20 @@ fn junk_ply(junk: usize, present: usize) -> Vec<u8> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_mesh_that_declares_more_than_its_bytes_hold_is_refused_at_once() {
-    let server = Server::default().await;
+    // The real binary, so that its memory is its own (the other tests of
+    // this process run beside this one).
+    let (mut child, base) = spawn_binary(&[]);
+    wait_ready(&base).await;
     let (png, _, truth) = box_scene();
     let p = params(600.0, truth.rotation_rows(), [0.0, 0.0, 0.5]);
     // Ten million junk items declared, one million present: the reader
     // used to allocate for every declared item (3.8 GB) before failing.
     let junk = junk_ply(10_000_000, 1_000_000);
-    let ((status, body, took), peak) =
-        peak_rss_mb(pose(&server, &png, &junk, p.clone(), "?timeout_ms=2000")).await;
+    let ((status, body, took), peak) = peak_rss_mb(
+        child.id(),
+        pose_at(&base, &png, &junk, p.clone(), "?timeout_ms=2000"),
+    )
+    .await;
     assert_eq!(status, 422, "{body}");
     let msg = body["error"].as_str().unwrap();
     assert!(msg.contains("element junk") && !msg.contains('\n'), "{msg}");
@@ -463,14 +479,14 @@ async fn a_mesh_that_declares_more_than_its_bytes_hold_is_refused_at_once() {
     // The same junk, all of it present: stepped over, and the cube's pose
     // is computed (or its edges found too few), never a 5xx or a 413.
     let junk = junk_ply(1_000_000, 1_000_000);
-    let (status, body, _) = pose(&server, &png, &junk, p, "?timeout_ms=5000").await;
+    let (status, body, _) = pose_at(&base, &png, &junk, p, "?timeout_ms=5000").await;
     assert!(matches!(status, 200 | 422), "{status} {body}");
     assert!(
         !body["error"].as_str().unwrap_or("").contains("PLY"),
         "{body}"
     );
-    still_serving(&server).await;
-    assert!(server.stop().await);
+    let _ = child.kill();
+    let _ = child.wait();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -78,8 +78,9 @@ struct Args {
     /// served, and readiness answers 503 while every place is taken.
     #[arg(long, env = "SDHOP_POSE_QUEUE_SIZE", default_value_t = 8)]
     pose_queue_size: usize,
-    /// Pose refinements computed at once, on threads of their own (0: half
-    /// the cores, at least one): the rest of the cores stay with /detect.
+    /// Threads of the pose pool, which refines poses (0: one per core). They
+    /// run at a lower priority (niceness +10) than /detect's, so that
+    /// detections keep the cores while both compute.
     #[arg(long, env = "SDHOP_POSE_THREADS", default_value_t = 0)]
     pose_threads: usize,
     /// Largest image, in pixels (checked from the header, before decoding).
@@ -230,7 +231,7 @@ fn run(args: Args) -> Result<(), String> {
         pose_threads: if args.pose_threads > 0 {
             args.pose_threads
         } else {
-            (std::thread::available_parallelism().map_or(1, |n| n.get()) / 2).max(1)
+            std::thread::available_parallelism().map_or(1, |n| n.get())
         },
     };
     let metrics = InferMetrics::new(&registry).map_err(|e| e.to_string())?;

@@ -61,7 +61,9 @@ pub struct InferConfig {
     /// Pose requests admitted at once (waiting or computing); more are
     /// refused with `Overloaded` while detections are still admitted.
     pub pose_queue_size: usize,
-    /// Pose refinements computed at once: the threads of the pose pool.
+    /// Threads of the pose pool (at most as many refinements at once; a
+    /// refinement alone uses them all). They run at a lower priority than
+    /// the detections ([`POSE_NICENESS`]).
     pub pose_threads: usize,
 }
 
@@ -310,6 +312,7 @@ impl Infer {
         let pose_pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.pose_threads)
             .thread_name(|i| format!("sdhop-pose-{i}"))
+            .start_handler(|_| yield_to_detections())
             .build()
             .map_err(|e| InferError::Internal(format!("cannot start the pose pool: {e}")))?;
         for lane in Lane::ALL {
@@ -568,6 +571,24 @@ impl Infer {
         };
         let join = tokio::task::spawn_blocking(move || handle.join().is_ok());
         matches!(tokio::time::timeout(grace, join).await, Ok(Ok(true)))
+    }
+}
+
+/// How much nicer (Linux niceness) the pose pool's threads are than the
+/// rest: while detections and poses both compute, the scheduler gives the
+/// cores to the detections first; alone, a pose still has every core.
+pub const POSE_NICENESS: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority by [`POSE_NICENESS`]
+/// (Linux; elsewhere nothing). Lowering one's own priority needs no
+/// privilege; a failure leaves the thread as it was.
+fn yield_to_detections() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: gettid and setpriority take plain integers and change only
+    // the calling thread's niceness.
+    unsafe {
+        let tid = libc::gettid();
+        let _ = libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, POSE_NICENESS);
     }
 }
 

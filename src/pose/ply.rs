@@ -287,9 +287,14 @@ impl Body<'_> {
                     .unwrap_or(rest.len() - start);
                 let word = &rest[start..start + len];
                 self.pos += start + len;
+                // A float property holds what an f32 holds, as in a
+                // binary file of the same header.
                 let v = std::str::from_utf8(word)
                     .ok()
-                    .and_then(|w| w.parse::<f64>().ok())
+                    .and_then(|w| match s {
+                        Scalar::F32 => w.parse::<f32>().ok().map(f64::from),
+                        _ => w.parse::<f64>().ok(),
+                    })
                     .ok_or_else(|| {
                         bad(format!(
                             "{:?} is not a number",
