@@ -19,11 +19,13 @@ use std::time::{Duration, Instant};
 
 use axum::body::{Body, Bytes, HttpBody};
 use axum::extract::Request;
+use axum::response::Response;
 use http_body::{Frame, SizeHint};
 use http_body_util::BodyExt;
 use tower::util::MapRequestLayer;
 
 use super::error::ApiError;
+use crate::infer::memory::{release_freed_pages, LARGE_BODY_BYTES};
 
 /// How many bytes past a route's limit are read and discarded.
 pub const DRAIN_BYTES: usize = 64 << 20;
@@ -119,6 +121,29 @@ pub fn drain_past(limit: usize) -> MapRequestLayer<impl Fn(Request) -> Request +
     })
 }
 
+/// The body length a request declares (`Content-Length`), if any.
+fn declared_length(headers: &axum::http::HeaderMap) -> Option<u64> {
+    headers
+        .get(axum::http::header::CONTENT_LENGTH)?
+        .to_str()
+        .ok()?
+        .parse()
+        .ok()
+}
+
+/// A middleware that, once a request declaring a body over
+/// [`LARGE_BODY_BYTES`] is answered, hands the pages its body took back to
+/// the system (it was read and freed on this runtime's thread; mimalloc
+/// would otherwise keep them while the service idles).
+pub async fn release_large_bodies(req: Request, next: axum::middleware::Next) -> Response {
+    let large = declared_length(req.headers()).is_some_and(|n| n > LARGE_BODY_BYTES);
+    let resp = next.run(req).await;
+    if large {
+        release_freed_pages();
+    }
+    resp
+}
+
 /// How a request's body must arrive: by the request's deadline, and at
 /// least at `min_rate` bytes per second on average once `grace` has
 /// passed (a client that stops sending is cut off after about `grace`).
@@ -156,12 +181,8 @@ pub async fn buffer(req: Request, limit: usize, pacing: &Pacing) -> Result<Reque
     // Room for the declared length (within the limit) at once: growing by
     // doubling would copy a large body several times and hold twice its
     // size. Reserved pages cost nothing until the bytes arrive.
-    let declared = parts
-        .headers
-        .get(axum::http::header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok()?.parse::<usize>().ok())
-        .unwrap_or(0);
-    let mut buf: Vec<u8> = Vec::with_capacity(declared.min(limit));
+    let declared = declared_length(&parts.headers).unwrap_or(0);
+    let mut buf: Vec<u8> = Vec::with_capacity(declared.min(limit as u64) as usize);
     loop {
         let due = pacing.due(start, buf.len());
         let frame = match tokio::time::timeout_at(due.into(), body.frame()).await {

@@ -22,7 +22,7 @@ use super::image::{decode, IMAGE_TYPES};
 use super::state::AppState;
 use crate::infer::DetectTask;
 use crate::model::Model;
-use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, MaskMode, RleFormat};
+use crate::pipeline::{BoxJson, DetectOptions, DetectResponse, DetectionJson, MaskMode, RleFormat};
 use crate::vision::mask::Mask;
 use crate::vision::Deadline;
 
@@ -356,13 +356,39 @@ pub async fn detect(
 }
 
 /// One detection in the `X-Detections` header of a PNG answer.
-#[derive(Serialize)]
+#[derive(Clone, Copy, Serialize)]
 struct HeaderDetection<'a> {
     label: &'a str,
     model: &'a str,
     score: f64,
     #[serde(rename = "box")]
     bbox: BoxJson,
+}
+
+impl<'a> HeaderDetection<'a> {
+    fn of(d: &'a DetectionJson) -> Self {
+        Self {
+            label: &d.label,
+            model: &d.model,
+            score: d.score,
+            bbox: d.bbox,
+        }
+    }
+
+    /// Score to 3 decimals, box to 1 (shorter headers).
+    fn rounded(&self) -> Self {
+        let b = &self.bbox;
+        Self {
+            score: round(self.score, 3),
+            bbox: BoxJson {
+                x: round(b.x, 1),
+                y: round(b.y, 1),
+                width: round(b.width, 1),
+                height: round(b.height, 1),
+            },
+            ..*self
+        }
+    }
 }
 
 /// The largest `X-Detections` header, in bytes: under the 8 KiB that many
@@ -374,7 +400,7 @@ pub const MAX_DETECTIONS_HEADER: usize = 7 << 10;
 /// The PNG text chunk (iTXt) that holds every detection of a label map.
 pub const DETECTIONS_CHUNK: &str = "sdhop-detections";
 
-/// Rounds to `digits` decimals (shorter headers).
+/// Rounds to `digits` decimals.
 fn round(v: f64, digits: i32) -> f64 {
     let f = 10f64.powi(digits);
     (v * f).round() / f
@@ -414,11 +440,11 @@ pub fn label_map(resp: &DetectResponse) -> Vec<u16> {
     map
 }
 
-/// The label map as PNG (8-bit when every label fits, else 16-bit) with
+/// The label map as PNG (8-bit up to 255 detections, else 16-bit) with
 /// `chunk` (every detection, JSON) in its `sdhop-detections` text chunk.
-fn label_map_png(resp: &DetectResponse, chunk: String) -> Result<Vec<u8>, png::EncodingError> {
+pub fn label_map_png(resp: &DetectResponse, chunk: String) -> Result<Vec<u8>, png::EncodingError> {
     let map = label_map(resp);
-    let wide = map.iter().any(|&v| v > 255) || resp.detections.len() > 255;
+    let wide = resp.detections.len() > 255;
     let mut out = Vec::new();
     let mut enc = png::Encoder::new(
         Cursor::new(&mut out),
@@ -444,32 +470,9 @@ fn label_map_png(resp: &DetectResponse, chunk: String) -> Result<Vec<u8>, png::E
 }
 
 fn label_map_response(resp: &DetectResponse) -> Result<Response, ApiError> {
-    let dets: Vec<HeaderDetection> = resp
-        .detections
-        .iter()
-        .map(|d| HeaderDetection {
-            label: &d.label,
-            model: &d.model,
-            score: round(d.score, 3),
-            bbox: BoxJson {
-                x: round(d.bbox.x, 1),
-                y: round(d.bbox.y, 1),
-                width: round(d.bbox.width, 1),
-                height: round(d.bbox.height, 1),
-            },
-        })
-        .collect();
-    // The text chunk: every detection, unrounded.
-    let full: Vec<HeaderDetection> = resp
-        .detections
-        .iter()
-        .map(|d| HeaderDetection {
-            label: &d.label,
-            model: &d.model,
-            score: d.score,
-            bbox: d.bbox,
-        })
-        .collect();
+    // The text chunk: every detection, unrounded; the header rounds.
+    let full: Vec<HeaderDetection> = resp.detections.iter().map(HeaderDetection::of).collect();
+    let dets: Vec<HeaderDetection> = full.iter().map(HeaderDetection::rounded).collect();
     let all = serde_json::to_string(&full).map_err(|e| ApiError::Internal(e.to_string()))?;
     // The header: the best detections whose JSON fits.
     let mut header_json = String::from("[");

@@ -1,7 +1,6 @@
 //! Prometheus metrics of the HTTP layer, and the middleware that records
 //! them: requests by route and status, and their durations.
 
-use crate::infer::memory::{release_freed_pages, LARGE_BODY_BYTES};
 use std::time::Instant;
 
 use axum::extract::{MatchedPath, Request, State};
@@ -69,17 +68,7 @@ pub async fn track(State(m): State<HttpMetrics>, req: Request, next: Next) -> Re
         .map_or("unmatched", |m| m.as_str())
         .to_string();
     let start = Instant::now();
-    let large = req
-        .headers()
-        .get(axum::http::header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok())
-        .is_some_and(|n| n > LARGE_BODY_BYTES);
     let resp = next.run(req).await;
-    if large {
-        // The body was read on this runtime's threads and is freed by
-        // now: hand its pages back rather than keep them while idle.
-        release_freed_pages();
-    }
     m.requests
         .with_label_values(&[route.as_str(), resp.status().as_str()])
         .inc();

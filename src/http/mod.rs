@@ -57,6 +57,7 @@ pub fn router(state: Arc<AppState>) -> Router {
             state.metrics.clone(),
             metrics::track,
         ))
+        .route_layer(axum::middleware::from_fn(body::release_large_bodies))
         .fallback(|| async { ApiError::NotFound("no such endpoint".into()) })
         .method_not_allowed_fallback(|| async { ApiError::MethodNotAllowed })
         .layer(DefaultBodyLimit::max(body_limit))

@@ -79,6 +79,16 @@ impl Default for InferConfig {
     }
 }
 
+impl InferConfig {
+    /// The places of `lane`.
+    pub fn places(&self, lane: Lane) -> usize {
+        match lane {
+            Lane::Detect => self.queue_size,
+            Lane::Pose => self.pose_queue_size,
+        }
+    }
+}
+
 /// The kinds of request, each with its own places.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Lane {
@@ -210,7 +220,8 @@ impl Drop for Permit {
     }
 }
 
-/// The worker's inbound jobs, by lane.
+/// The worker's inbound jobs, by lane (unbounded: the permits bound what
+/// is in them).
 struct Lanes {
     detect: VecDeque<Job>,
     pose: VecDeque<Job>,
@@ -262,10 +273,11 @@ impl Drop for Busy<'_> {
 
 impl Shared {
     fn counter(&self, lane: Lane) -> (&AtomicUsize, usize) {
-        match lane {
-            Lane::Detect => (&self.queued, self.config.queue_size),
-            Lane::Pose => (&self.poses, self.config.pose_queue_size),
-        }
+        let counter = match lane {
+            Lane::Detect => &self.queued,
+            Lane::Pose => &self.poses,
+        };
+        (counter, self.config.places(lane))
     }
 
     /// Gives `n` places of `lane` back.
@@ -316,9 +328,8 @@ impl Infer {
             .build()
             .map_err(|e| InferError::Internal(format!("cannot start the pose pool: {e}")))?;
         for lane in Lane::ALL {
-            metrics.set_capacity(lane, shared_capacity(&config, lane));
+            metrics.set_capacity(lane, config.places(lane));
         }
-        // Unbounded: the permits bound what is in it.
         let shared = Arc::new(Shared {
             config,
             inbox: Inbox {
@@ -475,7 +486,7 @@ impl Infer {
         if job.work.needs_detection() {
             self.push(job)?;
         } else {
-            queue::refine_later(&self.shared, job, Instant::now(), None);
+            queue::refine_later(&self.shared, job, None);
         }
         let result = self.wait(rx, deadline).await;
         drop(permit);
@@ -589,14 +600,6 @@ fn yield_to_detections() {
     unsafe {
         let tid = libc::gettid();
         let _ = libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, POSE_NICENESS);
-    }
-}
-
-/// The places of `lane` in `config`.
-fn shared_capacity(config: &InferConfig, lane: Lane) -> usize {
-    match lane {
-        Lane::Detect => config.queue_size,
-        Lane::Pose => config.pose_queue_size,
     }
 }
 

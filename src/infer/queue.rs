@@ -74,10 +74,11 @@ fn next_batch(shared: &Shared, pose_turn: &mut bool) -> Option<Vec<Job>> {
 /// Refines a pose on the pose pool, with the detection it needed (`None`
 /// when it needed none), and answers it. A pose whose deadline passed or
 /// whose caller left while it waited for the pool is not computed.
+/// The compute time it reports runs from `job.enqueued` (the batch's start
+/// for a pose detected first).
 pub(super) fn refine_later(
     shared: &Arc<Shared>,
     job: Job,
-    start: Instant,
     found: Option<Result<Detected, InferError>>,
 ) {
     let worker = Arc::clone(shared);
@@ -89,7 +90,11 @@ pub(super) fn refine_later(
         let large =
             matches!(&job.work, Work::Pose(t, _) if t.mesh.triangles.len() > LARGE_MESH_TRIANGLES);
         let _release = large.then(|| ReleaseOnDrop(&shared.pose_pool));
-        let Job { work, deadline, .. } = job;
+        let Job {
+            work,
+            deadline,
+            enqueued: start,
+        } = job;
         let Work::Pose(task, tx) = work else {
             work.fail(InferError::Internal("not a pose".into()));
             return;
@@ -334,7 +339,7 @@ fn process(batch: Vec<Job>, backend: &mut dyn Backend, shared: &Arc<Shared>) {
                         enqueued: start,
                         deadline: deadline.instant().unwrap_or(start),
                     };
-                    refine_later(shared, job, start, Some(found));
+                    refine_later(shared, job, Some(found));
                     return;
                 }
             };

@@ -142,6 +142,8 @@ enum Format {
 struct Header {
     format: Format,
     elements: Vec<Element>,
+    /// The declared vertex count.
+    vertices: usize,
     /// Where the body starts.
     body: usize,
 }
@@ -256,6 +258,7 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
     Ok(Header {
         format,
         elements,
+        vertices,
         body,
     })
 }
@@ -432,17 +435,29 @@ pub fn read(
                 let (Some(x), Some(y), Some(z)) = (slot("x"), slot("y"), slot("z")) else {
                     return Err(bad("the vertex element lacks a numeric x, y or z"));
                 };
-                let colour_slots = [slot("red"), slot("green"), slot("blue")];
-                let colour_types: Option<Vec<Scalar>> = colour_slots
-                    .iter()
-                    .map(|s| match e.props.get((*s)?)?.kind {
-                        Kind::Scalar(t) if channel(t, 0.0).is_some() => Some(t),
+                // Where and of which type red, green and blue are, when
+                // asked and all three are colour channels.
+                let rgb_slots: Option<[(usize, Scalar); 3]> = if colours {
+                    let channel_slot = |name: &str| {
+                        let i = slot(name)?;
+                        match e.props[i].kind {
+                            Kind::Scalar(t) if channel(t, 0.0).is_some() => Some((i, t)),
+                            _ => None,
+                        }
+                    };
+                    match [
+                        channel_slot("red"),
+                        channel_slot("green"),
+                        channel_slot("blue"),
+                    ] {
+                        [Some(r), Some(g), Some(b)] => Some([r, g, b]),
                         _ => None,
-                    })
-                    .collect();
-                let want_rgb = colours && colour_types.is_some();
+                    }
+                } else {
+                    None
+                };
                 vertices.reserve_exact(e.count);
-                let mut cols = Vec::with_capacity(if want_rgb { e.count } else { 0 });
+                let mut cols = Vec::with_capacity(if rgb_slots.is_some() { e.count } else { 0 });
                 let mut values = vec![0.0f64; e.props.len()];
                 for i in 0..e.count {
                     if i % DEADLINE_STRIDE == 0 && deadline.passed() {
@@ -458,19 +473,11 @@ pub fn read(
                         }
                     }
                     vertices.push(Vector3::new(values[x], values[y], values[z]));
-                    if want_rgb {
-                        let mut c = [0.0f32; 3];
-                        for (k, (s, t)) in colour_slots
-                            .iter()
-                            .zip(colour_types.iter().flatten())
-                            .enumerate()
-                        {
-                            c[k] = s.map_or(0.0, |s| channel(*t, values[s]).unwrap_or(0.0));
-                        }
-                        cols.push(c);
+                    if let Some(slots) = &rgb_slots {
+                        cols.push(slots.map(|(i, t)| channel(t, values[i]).unwrap_or(0.0)));
                     }
                 }
-                if want_rgb {
+                if rgb_slots.is_some() {
                     rgb = Some(cols);
                 }
             }
@@ -507,12 +514,7 @@ pub fn read(
                                 }
                                 if triangles.len() + n - 2 > limits.max_triangles {
                                     return Err(PoseError::MeshTooLarge {
-                                        vertices: vertices.len().max(
-                                            h.elements
-                                                .iter()
-                                                .find(|e| e.name == "vertex")
-                                                .map_or(0, |e| e.count),
-                                        ),
+                                        vertices: h.vertices,
                                         triangles: triangles.len() + n - 2,
                                         max_vertices: limits.max_vertices,
                                         max_triangles: limits.max_triangles,
