@@ -20,7 +20,7 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::vision::detect::DetectParams;
+use crate::vision::detect::{DetectParams, LowRank};
 use crate::vision::energy::{PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use crate::vision::pyramid::PyramidParams;
@@ -89,6 +89,11 @@ pub struct ViewMeta {
     /// initial pose.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub rotations: Vec<[f64; 4]>,
+    /// Where the component's training examples came from: the names of
+    /// its training views, the representative (medoid) first, or
+    /// `single-pose` for the masked occluded photographs of one viewpoint.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub views: Vec<String>,
 }
 
 /// JSON metadata of a weights file.
@@ -121,6 +126,30 @@ pub struct Model {
     pub meta: ModelMeta,
     pub views: Vec<ViewWeights>,
     pub shapes: Vec<Option<ShapeModel>>,
+    /// Stage 1's low-rank bound of `views`, built on first use (see
+    /// [`Model::low_rank`]).
+    low_rank: LowRankCache,
+}
+
+/// A [`LowRank`] built once per model (not part of its value: two models
+/// with equal weights are equal whether it was built or not).
+#[derive(Clone, Default)]
+struct LowRankCache(std::sync::OnceLock<std::sync::Arc<LowRank>>);
+
+impl PartialEq for LowRankCache {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for LowRankCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.get().is_some() {
+            "LowRank(built)"
+        } else {
+            "LowRank(not built)"
+        })
+    }
 }
 
 fn f32_bytes(v: impl Iterator<Item = f32>) -> Vec<u8> {
@@ -150,6 +179,7 @@ impl Model {
             meta,
             views,
             shapes,
+            low_rank: LowRankCache::default(),
         };
         m.validate()?;
         Ok(m)
@@ -162,6 +192,14 @@ impl Model {
         self.meta.format_version = FORMAT_VERSION;
         self.validate()?;
         Ok(self)
+    }
+
+    /// Stage 1's low-rank bound of the components' filters, built on the
+    /// first call (the weights must not change afterwards).
+    pub fn low_rank(&self) -> &LowRank {
+        self.low_rank
+            .0
+            .get_or_init(|| std::sync::Arc::new(LowRank::new(&self.views)))
     }
 
     /// The pixel size `(width, height)` of viewpoint `a`'s shape model.
@@ -467,6 +505,7 @@ mod tests {
                 cols: 3,
                 direction: None,
                 rotations: Vec::new(),
+                views: Vec::new(),
             }],
             provenance: serde_json::json!({"made_by": "test"}),
         };

@@ -99,7 +99,14 @@ pub struct DetectionJson {
     pub score: f64,
     #[serde(rename = "box")]
     pub bbox: BoxJson,
+    /// The viewpoint component that fired (index into the model's
+    /// components).
     pub viewpoint: usize,
+    /// Where that component came from: the training view it represents
+    /// (the medoid of its views), or `single-pose`; absent for models
+    /// trained without views.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub view: Option<String>,
     /// Pyramid level the detection was found at (0 = largest).
     pub level: usize,
     pub visible_fraction: f64,
@@ -276,7 +283,9 @@ pub fn detect_prebuilt_with(
                 .iter()
                 .enumerate()
                 .filter(|&(mi, _)| {
-                    of_model[mi] == idx && bounds.get(mi).copied().flatten().is_none()
+                    of_model[mi] == idx
+                        && bounds.get(mi).copied().flatten().is_none()
+                        && !uses_low_rank(models[mi])
                 })
                 .map(|(_, model)| model.views.as_slice())
                 .collect();
@@ -374,7 +383,9 @@ fn scan_model<'a>(
         .map(|v| labels.iter().position(|l| *l == v.label).unwrap_or(0))
         .collect();
     let mut detector = Detector::new(&model.views)?.with_groups(groups)?;
-    if let Some(maps) = maps {
+    if uses_low_rank(model) {
+        detector = detector.with_low_rank(model.low_rank());
+    } else if let Some(maps) = maps {
         detector = detector.with_maps(maps);
     }
     let (dets, s) = match transfer.as_deref() {
@@ -470,6 +481,7 @@ fn detection_json(
             height: d.bbox.3,
         },
         viewpoint: d.viewpoint,
+        view: m.viewpoints[d.viewpoint].views.first().cloned(),
         level: d.level,
         visible_fraction: d.visible_fraction,
         truncated: d.truncated,
@@ -560,3 +572,22 @@ pub fn overlay(img: &ColorImage, resp: &DetectResponse) -> image::RgbImage {
     }
     out
 }
+
+/// Whether stage 1 of `model` bounds through the low-rank basis of its
+/// components' filters ([`crate::vision::detect::LowRank`]): for models
+/// with at least [`LOW_RANK_MIN_COMPONENTS`] components, where one
+/// projection of the features serves them all. `SDHOP_STAGE1=full` or
+/// `SDHOP_STAGE1=low-rank` decides for every model (to measure both). The
+/// detections are the same either way.
+pub fn uses_low_rank(model: &Model) -> bool {
+    static MODE: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    let forced = *MODE.get_or_init(|| match std::env::var("SDHOP_STAGE1").as_deref() {
+        Ok("full") => Some(false),
+        Ok("low-rank") => Some(true),
+        _ => None,
+    });
+    forced.unwrap_or(model.views.len() >= LOW_RANK_MIN_COMPONENTS)
+}
+
+/// See [`uses_low_rank`].
+pub const LOW_RANK_MIN_COMPONENTS: usize = 2;

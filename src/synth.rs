@@ -385,6 +385,7 @@ pub fn hand_model(
             cols: obj.cols,
             direction: None,
             rotations: Vec::new(),
+            views: Vec::new(),
         }],
         provenance: serde_json::json!({
             "source": "hand-built from the HOG of a synthetic object (no training)",

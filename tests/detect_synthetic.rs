@@ -525,3 +525,41 @@ fn shared_feature_planes_change_nothing() {
         }
     }
 }
+
+/// Stage 1 through the low-rank basis of the components' filters gives
+/// the same detections as the full filters (it only bounds more loosely;
+/// the min-cut stage decides), for a model of several components, with
+/// one detection asked for and with many.
+#[test]
+fn low_rank_stage_one_gives_the_same_detections() {
+    let (model, scenes) = scanned_scenes(4);
+    let other = SynthObject {
+        cols: 8,
+        rows: 12,
+        seed: 5,
+    };
+    let second = hand_model(&other, "other", true, &HandModelParams::default()).unwrap();
+    // Three components: the object, another shape, the object again with
+    // its filters scaled (so the basis must serve different filters).
+    let mut scaled = model.views[0].clone();
+    scaled.w_vis.iter_mut().for_each(|v| *v *= 0.8);
+    let views = vec![model.views[0].clone(), second.views[0].clone(), scaled];
+    let lr = sdhop::vision::detect::LowRank::new(&views);
+    for max_detections in [1, 10] {
+        let params = DetectParams {
+            threshold: -1.0,
+            max_detections,
+            ..model.meta.detection
+        };
+        for (_, pyr) in &scenes {
+            let full = Detector::new(&views).unwrap().detect(pyr, &params).unwrap();
+            let low = Detector::new(&views)
+                .unwrap()
+                .with_low_rank(&lr)
+                .detect(pyr, &params)
+                .unwrap();
+            assert_eq!(full.0, low.0, "max_detections {max_detections}");
+            assert!(!full.0.is_empty());
+        }
+    }
+}

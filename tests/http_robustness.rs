@@ -934,6 +934,7 @@ async fn label_maps_keep_their_header_small_and_every_detection() {
                 height: 1.0,
             },
             viewpoint: 0,
+            view: None,
             level: 0,
             visible_fraction: 1.0,
             truncated: false,

@@ -63,7 +63,7 @@ fn shipped_models_localize_a_fixed_ko8_subset() {
     )
     .unwrap();
     let eval = score(&data, &images, &responses);
-    eprintln!("{}", sdhop::eval::table(&eval.objects));
+    eprintln!("{}", sdhop::eval::table(&eval.objects, true));
     assert!(eval.mean.auc >= 0.6, "mean AUC {}", eval.mean.auc);
     assert!(
         eval.mean.seg_error_refined < 0.5,

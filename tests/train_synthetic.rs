@@ -51,6 +51,7 @@ fn make_sample(
             bbox: sc.truth_box,
             visible: sc.visible.clone(),
             viewpoint: 0,
+            mask_known: true,
         }),
     };
     (sample, sc)

@@ -62,6 +62,7 @@ pub(crate) fn write_evaluation(
     report: &serde_json::Value,
     evaluation: &Evaluation,
     ko8: &Path,
+    part: Part,
 ) -> Result<(), Failure> {
     let pred = out.join("predictions");
     std::fs::create_dir_all(&pred).map_err(|e| Failure::io(format!("{}: {e}", pred.display())))?;
@@ -72,9 +73,16 @@ pub(crate) fn write_evaluation(
     let text = serde_json::to_string_pretty(report).map_err(Failure::io)?;
     std::fs::write(&path, text).map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
     let plot = out.join("recall_fppi.png");
-    crate::eval::plot::recall_fppi_png(&evaluation.objects, &ko8.join("plots/single"), &plot)
-        .map_err(Failure::io)?;
-    println!("{}", crate::eval::table(&evaluation.objects));
+    crate::eval::plot::recall_fppi_png(
+        &evaluation.objects,
+        &ko8.join("plots").join(part.name()),
+        &plot,
+    )
+    .map_err(Failure::io)?;
+    println!(
+        "{}",
+        crate::eval::table(&evaluation.objects, part == Part::Single)
+    );
     println!(
         "wrote {}, {} and {}",
         path.display(),
@@ -164,7 +172,7 @@ pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
         let evaluation = score(&data, &refs, &responses);
         println!(
             "C = {c} ({secs:.0} s), threshold {chosen}\n{}",
-            crate::eval::table(&evaluation.objects)
+            crate::eval::table(&evaluation.objects, true)
         );
         for t in &sweep {
             println!(
@@ -210,7 +218,15 @@ pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
         "chosen C = {}, threshold = {}",
         report["c"], report["threshold"]
     );
-    write_evaluation(&args.out, &ids, &responses, &report, &evaluation, &args.ko8)
+    write_evaluation(
+        &args.out,
+        &ids,
+        &responses,
+        &report,
+        &evaluation,
+        &args.ko8,
+        Part::Single,
+    )
 }
 
 pub(crate) fn strip_curves(e: &Evaluation) -> serde_json::Value {

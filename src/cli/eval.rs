@@ -18,6 +18,16 @@ pub(crate) struct EvalArgs {
     pub(crate) out: PathBuf,
     #[arg(long, default_value_t = 20)]
     pub(crate) max_detections: usize,
+    /// Which part of CMU_KO8: `single` (masked occluded photographs of
+    /// one viewpoint: localization and segmentation) or `multiple` (the
+    /// multi-view part's box-only photographs from any side: localization
+    /// only, as `PART=multiple ko8_eval.py`).
+    #[arg(long, value_enum, default_value_t = Part::Single)]
+    pub(crate) part: Part,
+    /// Leave out the first N images of each object (those a model trained
+    /// on with `train --boxes-first N`).
+    #[arg(long, default_value_t = 0)]
+    pub(crate) skip_first: usize,
     /// Only every n-th image of each object (a quick check).
     #[arg(long, default_value_t = 1)]
     pub(crate) every: usize,
@@ -36,10 +46,19 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     let models = load_model_dir(&args.models_dir)?;
     let refs: Vec<&Model> = models.iter().collect();
     let every = args.every.max(1);
-    let images: Vec<_> = data
-        .images
+    let part_images = match args.part {
+        Part::Single => &data.images,
+        Part::Multiple if data.photos.is_empty() => {
+            return Err(Failure::input(format!(
+                "{}: no multi-view part (multiple/)",
+                args.ko8.display()
+            )))
+        }
+        Part::Multiple => &data.photos,
+    };
+    let images: Vec<_> = part_images
         .iter()
-        .flat_map(|imgs| imgs.iter().step_by(every))
+        .flat_map(|imgs| imgs.iter().skip(args.skip_first).step_by(every))
         .collect();
     let cache = PyramidCache::default();
     let m0 = refs.first().ok_or_else(|| Failure::input("no model"))?;
@@ -61,9 +80,34 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     let evaluation = score(&data, &images, &responses);
     let report = serde_json::json!({
         "models": models.iter().map(|m| &m.meta.name).collect::<Vec<_>>(),
+        "part": args.part.name(),
         "images": images.len(),
         "evaluation": strip_curves(&evaluation),
     });
     let ids: Vec<&str> = images.iter().map(|s| s.id.as_str()).collect();
-    write_evaluation(&args.out, &ids, &responses, &report, &evaluation, &args.ko8)
+    write_evaluation(
+        &args.out,
+        &ids,
+        &responses,
+        &report,
+        &evaluation,
+        &args.ko8,
+        args.part,
+    )
+}
+
+/// A part of CMU_KO8.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum Part {
+    Single,
+    Multiple,
+}
+
+impl Part {
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Part::Single => "single",
+            Part::Multiple => "multiple",
+        }
+    }
 }

@@ -2,6 +2,12 @@
 //! file), saved as weights files.
 
 use super::*;
+use crate::data::load_image;
+use crate::train::ko8::{train_object_sources, Source};
+use crate::train::multiview::{train_sources, MultiViewParams, Sources};
+use crate::train::views::{AugmentParams, OccluderKinds, View};
+use crate::train::{TrainError, TrainReport};
+use std::sync::Arc;
 
 #[derive(clap::Args)]
 pub(crate) struct TrainArgs {
@@ -23,6 +29,42 @@ pub(crate) struct TrainArgs {
     /// Folder for the weights files (one per object, named after it).
     #[arg(long, default_value = "models")]
     pub(crate) out: PathBuf,
+    /// Training sources (CMU_KO8), comma-separated: `single` (masked
+    /// occluded photographs of one viewpoint), `views` (the multi-view
+    /// part's unoccluded views, grouped into components and augmented with
+    /// occluders), `boxes` (its box-only photographs; visibility and
+    /// component latent). With --coco: `views` treats the masked
+    /// annotations as unoccluded views to augment, `boxes` uses box-only
+    /// annotations (no segmentation).
+    #[arg(long, value_delimiter = ',', default_value = "single,views,boxes", value_parser = Source::parse)]
+    pub(crate) sources: Vec<Source>,
+    /// View components per object (the views are grouped by appearance and
+    /// aspect ratio; capped at the number of views).
+    #[arg(long, default_value_t = MultiViewParams::default().components)]
+    pub(crate) components: usize,
+    /// Photographs made from each view (plus as many mirrored).
+    #[arg(long, default_value_t = AugmentParams::default().per_view)]
+    pub(crate) per_view: usize,
+    /// Do not add mirrored views (for objects without a plane of
+    /// symmetry).
+    #[arg(long)]
+    pub(crate) no_mirror: bool,
+    /// Occluders pasted over the view photographs, as weights
+    /// OBJECTS,PATCHES,SMOOTH (other objects' masked crops, background
+    /// patches, smooth colours).
+    #[arg(long, value_name = "O,P,S")]
+    pub(crate) occluders: Option<String>,
+    /// Use only the first N box-only photographs of each object (sorted
+    /// by name; default all), e.g. to score the others with `eval --part
+    /// multiple --skip-first N`.
+    #[arg(long)]
+    pub(crate) boxes_first: Option<usize>,
+    /// CCCP rounds of the box-only photographs (impute, retrain).
+    #[arg(long, default_value_t = MultiViewParams::default().latent_rounds)]
+    pub(crate) latent_rounds: usize,
+    /// Negative scenes for --coco (a folder of images without the object).
+    #[arg(long, requires = "coco")]
+    pub(crate) negatives: Option<PathBuf>,
     /// Cross-validation figures (JSON written by `cv`) to store in the
     /// models' metadata.
     #[arg(long)]
@@ -45,18 +87,32 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
         ),
         None => None,
     };
+    let mv = args.multiview()?;
     let cache = PyramidCache::default();
     let trained = if let Some(coco) = &args.coco {
         let dir = args.images.clone().unwrap_or_default();
+        let extra_negatives = match &args.negatives {
+            Some(d) => image_folder(d)?,
+            None => Vec::new(),
+        };
         let mut out = Vec::new();
         for cat in &args.category {
             let loaded = load_coco(coco, &dir, cat).map_err(Failure::input)?;
             for s in &loaded.skipped {
                 eprintln!("skipped: {s}");
             }
-            let refs: Vec<_> = loaded.samples.iter().collect();
             let pb = progress_bar(0, cat);
-            let r = train_model(cat, &refs, &cache, &params, &pb).map_err(Failure::input)?;
+            let r = train_coco(
+                cat,
+                loaded.samples,
+                &extra_negatives,
+                &args.sources,
+                &cache,
+                &params,
+                &mv,
+                &pb,
+            )
+            .map_err(Failure::input)?;
             pb.finish_and_clear();
             out.push(r);
         }
@@ -66,11 +122,45 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             .ko8
             .as_ref()
             .ok_or_else(|| Failure::input("--ko8 or --coco is required"))?;
-        let data = Ko8Data::load(root, &args.objects).map_err(Failure::input)?;
+        // Views and boxes load every object: the others' views are
+        // occluders and negatives, their photographs negatives.
+        let multi = args.sources != [Source::Single];
+        let mut data =
+            Ko8Data::load(root, if multi { &[] } else { &args.objects }).map_err(Failure::input)?;
+        if let Some(n) = args.boxes_first {
+            for p in &mut data.photos {
+                p.truncate(n);
+            }
+        }
         for s in &data.skipped {
             eprintln!("skipped: {s}");
         }
-        train_objects(&data, None, &params, &neg, &cache).map_err(Failure::input)?
+        for o in &args.objects {
+            if !data.objects.contains(o) {
+                return Err(Failure::input(format!(
+                    "--objects: no object {o:?} in {} (it has {})",
+                    root.display(),
+                    data.objects.join(", ")
+                )));
+            }
+        }
+        if !multi {
+            train_objects(&data, None, &params, &neg, &cache).map_err(Failure::input)?
+        } else {
+            let mut out = Vec::new();
+            let chosen = (0..data.objects.len())
+                .filter(|&oi| args.objects.is_empty() || args.objects.contains(&data.objects[oi]));
+            for oi in chosen {
+                let pb = progress_bar(0, &data.objects[oi]);
+                let (m, mut r) =
+                    train_object_sources(&data, oi, &args.sources, &params, &neg, &mv, &cache, &pb)
+                        .map_err(Failure::input)?;
+                pb.finish_and_clear();
+                let last = r.rounds.pop().unwrap_or_default();
+                out.push((m, last));
+            }
+            out
+        }
     };
     for (mut model, report) in trained {
         if let Some(obj) = model.meta.provenance.as_object_mut() {
@@ -89,8 +179,9 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             model.meta.name, report.full_violation, report.full_min_cuts
         );
         println!(
-            "{:10} {}x{} cells, {} positives, {} negatives, {} passes, {} iterations, converged {}, {:.1} s (full {:.1}, cached {:.1}, qp {:.1}) -> {}",
+            "{:10} {} components, {}x{} cells, {} positives, {} negatives, {} passes, {} iterations, converged {}, {:.1} s (full {:.1}, cached {:.1}, qp {:.1}) -> {}",
             model.meta.name,
+            model.views.len(),
             model.views[0].rows,
             model.views[0].cols,
             report.positives,
@@ -133,4 +224,124 @@ pub(crate) fn add_cv_figures(model: &mut Model, cv: &serde_json::Value) {
     if let Some(t) = cv["threshold"].as_f64() {
         model.meta.detection.threshold = t;
     }
+}
+
+impl TrainArgs {
+    /// The multi-view settings from the flags.
+    fn multiview(&self) -> Result<MultiViewParams, Failure> {
+        let mut mv = MultiViewParams {
+            components: self.components,
+            latent_rounds: self.latent_rounds,
+            ..MultiViewParams::default()
+        };
+        mv.augment.per_view = self.per_view;
+        mv.augment.mirror = !self.no_mirror;
+        if let Some(o) = &self.occluders {
+            let v: Vec<f64> = o
+                .split(',')
+                .map(|x| x.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| Failure::input(format!("--occluders {o:?}: {e}")))?;
+            let [objects, patches, smooth] = v[..] else {
+                return Err(Failure::input(format!(
+                    "--occluders {o:?}: expected three weights OBJECTS,PATCHES,SMOOTH"
+                )));
+            };
+            mv.augment.kinds = OccluderKinds {
+                objects,
+                patches,
+                smooth,
+            };
+        }
+        mv.validate().map_err(Failure::input)?;
+        Ok(mv)
+    }
+}
+
+/// The images of a folder (sorted) as negative samples.
+fn image_folder(dir: &std::path::Path) -> Result<Vec<Sample>, Failure> {
+    let rd = std::fs::read_dir(dir).map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?;
+    let mut paths: Vec<PathBuf> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|x| x.to_str())
+                .is_some_and(|x| matches!(x.to_ascii_lowercase().as_str(), "jpg" | "jpeg" | "png"))
+        })
+        .collect();
+    paths.sort();
+    if paths.is_empty() {
+        return Err(Failure::input(format!(
+            "{}: no .jpg or .png image to use as a negative",
+            dir.display()
+        )));
+    }
+    Ok(paths
+        .into_iter()
+        .map(|p| Sample {
+            id: p
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            image: p,
+            annotation: None,
+        })
+        .collect())
+}
+
+/// One COCO category from its samples and `sources`: masked annotations
+/// are views (`views`) or masked photographs (`single`, the default
+/// without `views`), box-only ones train with latent visibility (`boxes`).
+#[allow(clippy::too_many_arguments)]
+fn train_coco(
+    cat: &str,
+    samples: Vec<Sample>,
+    extra_negatives: &[Sample],
+    sources: &[Source],
+    cache: &PyramidCache,
+    params: &TrainParams,
+    mv: &MultiViewParams,
+    pb: &indicatif::ProgressBar,
+) -> Result<(Model, TrainReport), TrainError> {
+    let as_views = sources.contains(&Source::Views);
+    let use_boxes = sources.contains(&Source::Boxes);
+    let mut fixed: Vec<Sample> = Vec::new();
+    let mut views = Vec::new();
+    let mut boxes = Vec::new();
+    for s in samples {
+        match &s.annotation {
+            None => fixed.push(s),
+            Some(a) if !a.mask_known => {
+                if use_boxes {
+                    boxes.push(s);
+                }
+            }
+            Some(_) if as_views => views.push(View::from_sample(&s)?),
+            Some(_) => fixed.push(s),
+        }
+    }
+    fixed.extend(extra_negatives.iter().cloned());
+    let backgrounds: Vec<Arc<ColorImage>> = if as_views {
+        fixed
+            .iter()
+            .filter(|s| s.annotation.is_none())
+            .take(20)
+            .map(|s| load_image(&s.image).map(Arc::new))
+            .collect::<Result<_, _>>()?
+    } else {
+        Vec::new()
+    };
+    if views.is_empty() && boxes.is_empty() {
+        let refs: Vec<&Sample> = fixed.iter().collect();
+        return train_model(cat, &refs, cache, params, pb);
+    }
+    let src = Sources {
+        fixed: fixed.iter().collect(),
+        views,
+        occluders: Vec::new(),
+        backgrounds,
+        boxes,
+    };
+    let (m, mut r) = train_sources(cat, src, cache, params, mv, pb)?;
+    Ok((m, r.rounds.pop().unwrap_or_default()))
 }

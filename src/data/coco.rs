@@ -36,7 +36,13 @@ struct CocoCategory {
 struct CocoAnnotation {
     image_id: u64,
     category_id: u64,
-    bbox: [f64; 4],
+    /// The full extent; may be left out where the segmentation is of an
+    /// unoccluded view (the box is then the mask's tight box).
+    #[serde(default)]
+    bbox: Option<[f64; 4]>,
+    /// The visible pixels; left out (or null, or `[]`) for a box-only
+    /// annotation, whose visibility training imputes.
+    #[serde(default)]
     segmentation: serde_json::Value,
     #[serde(default)]
     viewpoint: Option<usize>,
@@ -136,6 +142,21 @@ fn coco_mask(seg: &serde_json::Value, width: usize, height: usize) -> Result<Mas
     }
 }
 
+/// The pixels of a box, clipped to the image (the start of a box-only
+/// annotation's imputed visibility).
+pub fn box_mask(b: (f64, f64, f64, f64), width: usize, height: usize) -> Mask {
+    let mut m = Mask::new(width, height);
+    let clip = |v: f64, hi: usize| v.round().clamp(0.0, hi as f64) as usize;
+    let (x0, x1) = (clip(b.0, width), clip(b.0 + b.2, width));
+    let (y0, y1) = (clip(b.1, height), clip(b.1 + b.3, height));
+    for y in y0..y1 {
+        for x in x0..x1 {
+            m.set(x, y, true);
+        }
+    }
+    m
+}
+
 /// Reads a COCO-style JSON file for one category: images with an annotation
 /// of `category` are positives (the first annotation per image; further ones
 /// are reported as skipped), every other image is a negative. Image paths are
@@ -187,23 +208,49 @@ pub fn load_coco(json: &Path, image_dir: &Path, category: &str) -> Result<Loaded
             ));
         }
         let a = anns[0];
-        let bbox = (a.bbox[0], a.bbox[1], a.bbox[2], a.bbox[3]);
+        let no_mask = match &a.segmentation {
+            serde_json::Value::Null => true,
+            serde_json::Value::Array(v) => v.is_empty(),
+            _ => false,
+        };
+        let mask = if no_mask {
+            None
+        } else {
+            match coco_mask(&a.segmentation, img.width, img.height) {
+                Ok(m) if m.area() > 0 => Some(m),
+                Ok(_) => {
+                    out.skipped
+                        .push(format!("{}: empty segmentation", path.display()));
+                    continue;
+                }
+                Err(e) => {
+                    out.skipped.push(format!("{}: {e}", path.display()));
+                    continue;
+                }
+            }
+        };
+        let bbox = match (a.bbox, &mask) {
+            (Some(b), _) => (b[0], b[1], b[2], b[3]),
+            (None, Some(m)) => match m.tight_box() {
+                Some((x0, y0, x1, y1)) => {
+                    (x0 as f64, y0 as f64, (x1 - x0) as f64, (y1 - y0) as f64)
+                }
+                None => continue,
+            },
+            (None, None) => {
+                out.skipped.push(format!(
+                    "{}: annotation of {category} has neither a bbox nor a segmentation",
+                    path.display()
+                ));
+                continue;
+            }
+        };
         if let Err(e) = check_box(&path, bbox, img.width, img.height) {
             out.skipped.push(e.to_string());
             continue;
         }
-        let visible = match coco_mask(&a.segmentation, img.width, img.height) {
-            Ok(m) if m.area() > 0 => m,
-            Ok(_) => {
-                out.skipped
-                    .push(format!("{}: empty segmentation", path.display()));
-                continue;
-            }
-            Err(e) => {
-                out.skipped.push(format!("{}: {e}", path.display()));
-                continue;
-            }
-        };
+        let mask_known = mask.is_some();
+        let visible = mask.unwrap_or_else(|| box_mask(bbox, img.width, img.height));
         out.samples.push(Sample {
             image: path,
             id,
@@ -212,6 +259,7 @@ pub fn load_coco(json: &Path, image_dir: &Path, category: &str) -> Result<Loaded
                 bbox,
                 visible,
                 viewpoint: a.viewpoint.unwrap_or(0),
+                mask_known,
             }),
         });
     }

@@ -175,8 +175,86 @@ impl Ko8 {
                 bbox,
                 visible,
                 viewpoint: 0,
+                mask_known: true,
             }),
         })
+    }
+
+    /// Whether the multi-view part (`multiple/`) is there.
+    pub fn has_multiple(&self) -> bool {
+        self.root.join("multiple/train").is_dir()
+    }
+
+    /// The unoccluded views of one object (multi-view part:
+    /// `multiple/train/<obj>/<obj>_NNN.jpg` with `<obj>_NNN_mask.png`), in
+    /// sorted order (the camera's order around the object). Each view's
+    /// box is its mask's tight box. A view without its mask, or with an
+    /// empty one, is reported in `skipped`, naming the file.
+    pub fn views(&self, object: &str) -> Result<Loaded, DatasetError> {
+        let dir = self.root.join("multiple/train").join(object);
+        let mut out = Loaded::default();
+        for image in sorted_files(&dir, ".jpg")? {
+            let stem = image
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let mask_path = dir.join(format!("{stem}_mask.png"));
+            if !mask_path.is_file() {
+                out.skipped.push(format!(
+                    "{}: view without its mask ({} is missing)",
+                    image.display(),
+                    mask_path.display()
+                ));
+                continue;
+            }
+            let visible = match load_mask(&mask_path) {
+                Ok(m) => m,
+                Err(e) => {
+                    out.skipped.push(e.to_string());
+                    continue;
+                }
+            };
+            let Some((x0, y0, x1, y1)) = visible.tight_box() else {
+                out.skipped
+                    .push(format!("{}: empty mask", mask_path.display()));
+                continue;
+            };
+            out.samples.push(Sample {
+                image,
+                id: stem.clone(),
+                annotation: Some(Annotation {
+                    label: object.to_string(),
+                    bbox: (x0 as f64, y0 as f64, (x1 - x0) as f64, (y1 - y0) as f64),
+                    visible,
+                    viewpoint: 0,
+                    mask_known: true,
+                }),
+            });
+        }
+        if out.samples.is_empty() {
+            return Err(invalid(&dir, "no view with a mask"));
+        }
+        Ok(out)
+    }
+
+    /// The box-only photographs of one object (multi-view part:
+    /// `multiple/test/<obj>/<obj>_NNN.jpg` with a `.bbox` centre box and no
+    /// mask): annotations whose visibility is latent (`mask_known` false,
+    /// `visible` the whole box).
+    pub fn box_photos(&self, object: &str) -> Result<Loaded, DatasetError> {
+        let dir = self.root.join("multiple/test").join(object);
+        let mut out = Loaded::default();
+        for bbox_path in sorted_files(&dir, ".bbox")? {
+            let stem = bbox_path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            match box_photo(object, &dir, &stem) {
+                Ok(s) => out.samples.push(s),
+                Err(e) => out.skipped.push(e.to_string()),
+            }
+        }
+        Ok(out)
     }
 
     /// The negative kitchen scenes (no object).
@@ -193,6 +271,34 @@ impl Ko8 {
             })
             .collect())
     }
+}
+
+/// One box-only photograph of the multi-view part.
+fn box_photo(object: &str, dir: &Path, stem: &str) -> Result<Sample, DatasetError> {
+    let bbox_path = dir.join(format!("{stem}.bbox"));
+    let text = std::fs::read_to_string(&bbox_path).map_err(|source| DatasetError::Io {
+        path: bbox_path.clone(),
+        source,
+    })?;
+    let cb = parse_ko8_bbox(&text)
+        .ok_or_else(|| invalid(&bbox_path, "expected four numbers cx cy w h, w, h > 0"))?;
+    let image = dir.join(format!("{stem}.jpg"));
+    let (w, h) = image::image_dimensions(&image)
+        .map_err(|e| invalid(&image, format!("cannot read the image: {e}")))?;
+    let (w, h) = (w as usize, h as usize);
+    let bbox = (cb.0 - cb.2 / 2.0, cb.1 - cb.3 / 2.0, cb.2, cb.3);
+    check_box(&bbox_path, bbox, w, h)?;
+    Ok(Sample {
+        image,
+        id: stem.to_string(),
+        annotation: Some(Annotation {
+            label: object.to_string(),
+            bbox,
+            visible: super::coco::box_mask(bbox, w, h),
+            viewpoint: 0,
+            mask_known: false,
+        }),
+    })
 }
 
 // ---------------------------------------------------------------- COCO ----

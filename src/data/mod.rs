@@ -51,6 +51,10 @@ pub struct Annotation {
     pub visible: Mask,
     /// Viewpoint (component) index.
     pub viewpoint: usize,
+    /// Whether `visible` is known (a mask was annotated). A box-only
+    /// annotation has `false`: its `visible` is the whole box to begin
+    /// with, and training imputes it (the visibility labelling is latent).
+    pub mask_known: bool,
 }
 
 /// One image: a positive with its annotation, or a negative without.
@@ -127,5 +131,5 @@ pub(crate) fn check_box(
     Ok(())
 }
 
-pub use coco::{decode_coco_rle_string, load_coco};
+pub use coco::{box_mask, decode_coco_rle_string, load_coco};
 pub use ko8::{ko8_visible_mask, parse_ko8_bbox, Ko8, KO8_OBJECTS};

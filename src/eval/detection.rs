@@ -234,7 +234,30 @@ pub fn mean_score(scores: &[ObjectScore]) -> MeanScore {
 }
 
 /// A table of the figures, one row per object and the mean.
-pub fn table(scores: &[ObjectScore]) -> String {
+/// A text table of the figures; `segmentation` false (box-only truth)
+/// leaves the segmentation columns out and adds recall at 1 FPPI.
+pub fn table(scores: &[ObjectScore], segmentation: bool) -> String {
+    let m = mean_score(scores);
+    if !segmentation {
+        let n = scores.len().max(1) as f64;
+        let r1 = scores.iter().map(|o| o.recall_at_1fppi).sum::<f64>() / n;
+        let r1c = scores.iter().map(|o| o.recall_at_1fppi_cross).sum::<f64>() / n;
+        let mut s = format!(
+            "{:10} {:>6} {:>9} {:>8} {:>14} {:>5}\n",
+            "object", "AUC", "AUC-cross", "R@1FPPI", "R@1FPPI-cross", "n"
+        );
+        for o in scores {
+            s += &format!(
+                "{:10} {:6.3} {:9.3} {:8.3} {:14.3} {:5}\n",
+                o.object, o.auc, o.auc_cross, o.recall_at_1fppi, o.recall_at_1fppi_cross, o.images
+            );
+        }
+        s += &format!(
+            "{:10} {:6.3} {:9.3} {:8.3} {:14.3}\n",
+            "mean", m.auc, m.auc_cross, r1, r1c
+        );
+        return s;
+    }
     let mut s = format!(
         "{:10} {:>6} {:>9} {:>10} {:>9} {:>10} {:>9} {:>5}\n",
         "object", "AUC", "AUC-cross", "seg-refine", "seg-raw", "VOC-refine", "VOC-raw", "n"
@@ -252,7 +275,6 @@ pub fn table(scores: &[ObjectScore]) -> String {
             o.images
         );
     }
-    let m = mean_score(scores);
     s += &format!(
         "{:10} {:6.3} {:9.3} {:10.4} {:9.4} {:10.4} {:9.4}\n",
         "mean",

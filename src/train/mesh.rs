@@ -607,6 +607,7 @@ pub fn render_set_with(
                 ),
                 visible,
                 viewpoint: 0,
+                mask_known: true,
             }),
         });
         poses.push(pose);

@@ -20,11 +20,14 @@
 
 pub mod cache;
 pub mod ko8;
+pub mod latent;
 pub mod layout;
 pub mod loss;
 pub mod mesh;
+pub mod multiview;
 pub mod qp;
 mod search;
+pub mod views;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -556,6 +559,7 @@ pub fn train_joint(
                 cols,
                 direction: None,
                 rotations: Vec::new(),
+                views: Vec::new(),
             })
             .collect(),
         provenance: serde_json::json!({
@@ -591,7 +595,7 @@ pub fn learn_shapes(
         .map(|a| {
             let label = &model.meta.viewpoints[a].label;
             let (w, h) = model.shape_size(a);
-            let mine: Vec<&Sample> = samples
+            let mut mine: Vec<&Sample> = samples
                 .iter()
                 .copied()
                 .filter(|s| {
@@ -600,6 +604,14 @@ pub fn learn_shapes(
                         .is_some_and(|an| &an.label == label && an.viewpoint == a)
                 })
                 .collect();
+            // Imputed masks (box-only annotations) only where no mask is
+            // known.
+            if mine
+                .iter()
+                .any(|s| s.annotation.as_ref().is_some_and(|an| an.mask_known))
+            {
+                mine.retain(|s| s.annotation.as_ref().is_some_and(|an| an.mask_known));
+            }
             let mut shape = ShapeModel::learn(
                 w,
                 h,

@@ -115,7 +115,7 @@ pub(super) struct PlanarMap {
     pad_y: usize,
     width: usize,
     plane_len: usize,
-    data: Vec<f32>,
+    pub(super) data: Vec<f32>,
 }
 
 impl PlanarMap {
@@ -139,6 +139,169 @@ impl PlanarMap {
             width,
             plane_len,
             data,
+        }
+    }
+
+    /// The planes of `hog` projected on `basis` (its first
+    /// [`LOW_RANK`] planes) and each cell's feature norm, rounded up (the
+    /// last plane), for [`LowRankFilter`]s.
+    pub(super) fn projected(
+        hog: &HogMap,
+        basis: &LowRankBasis,
+        pad_x: usize,
+        pad_y: usize,
+    ) -> Self {
+        let width = hog.width() + 2 * pad_x + LANES;
+        let height = hog.height() + 2 * pad_y;
+        let plane_len = width * height;
+        let mut data = vec![0.0f32; plane_len * LOW_RANK_DIMS];
+        for y in 0..hog.height() {
+            for x in 0..hog.width() {
+                let o = (y + pad_y) * width + x + pad_x;
+                let f = &hog.cell(x, y)[..HOG_DIM];
+                for (k, b) in basis.vectors.iter().enumerate() {
+                    data[k * plane_len + o] = dot_body(b, f);
+                }
+                let norm = f.iter().map(|v| v * v).sum::<f32>().sqrt();
+                data[LOW_RANK * plane_len + o] = norm * (1.0 + 1e-5) + 1e-7;
+            }
+        }
+        Self {
+            pad_x,
+            pad_y,
+            width,
+            plane_len,
+            data,
+        }
+    }
+}
+
+/// Rank of the shared basis of stage 1's low-rank bound.
+pub const LOW_RANK: usize = 10;
+/// Feature planes of the low-rank bound: the basis and the norm.
+pub(super) const LOW_RANK_DIMS: usize = LOW_RANK + 1;
+
+/// An orthonormal basis of the HOG dimensions that best represents the
+/// filters of a model's components (the leading eigenvectors of the second
+/// moments of all their cells' object and occlusion filters): one
+/// projection of the feature maps serves every component's bound.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LowRankBasis {
+    vectors: Vec<[f32; HOG_DIM]>,
+}
+
+/// One component's filters in the basis, with each cell's residual norm
+/// as the weight of the norm plane (negated): `w . f >= (B^T w) . (B^T f) -
+/// |w - B B^T w| |f|`, so the chain bound over these unaries is a lower
+/// bound of the full one.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LowRankFilter {
+    vis: Vec<f32>,
+    occ: Vec<f32>,
+}
+
+impl LowRankBasis {
+    /// The basis of `views`' filters.
+    pub fn new(views: &[ViewWeights]) -> Self {
+        let mut m = nalgebra::SMatrix::<f64, HOG_DIM, HOG_DIM>::zeros();
+        for w in views {
+            for cell in w.w_vis.chunks(HOG_STRIDE).chain(w.w_occ.chunks(HOG_STRIDE)) {
+                let v = nalgebra::SVector::<f64, HOG_DIM>::from_iterator(
+                    cell[..HOG_DIM].iter().map(|&x| f64::from(x)),
+                );
+                m += v * v.transpose();
+            }
+        }
+        let eig = m.symmetric_eigen();
+        let mut order: Vec<usize> = (0..HOG_DIM).collect();
+        order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+        let vectors = order[..LOW_RANK]
+            .iter()
+            .map(|&k| {
+                let mut b = [0.0f32; HOG_DIM];
+                for (d, x) in b.iter_mut().enumerate() {
+                    *x = eig.eigenvectors[(d, k)] as f32;
+                }
+                b
+            })
+            .collect();
+        Self { vectors }
+    }
+
+    /// `w`'s filters in this basis.
+    pub fn filter(&self, w: &ViewWeights) -> LowRankFilter {
+        let project = |f: &[f32]| -> Vec<f32> {
+            let mut out = Vec::with_capacity(w.cells() * LOW_RANK_DIMS);
+            for cell in f.chunks(HOG_STRIDE) {
+                let c: Vec<f64> = cell[..HOG_DIM].iter().map(|&x| f64::from(x)).collect();
+                let mut resid = c.clone();
+                for b in &self.vectors {
+                    let a: f64 = b.iter().zip(&c).map(|(&x, y)| f64::from(x) * y).sum();
+                    out.push(a as f32);
+                    for (r, &x) in resid.iter_mut().zip(b) {
+                        *r -= a * f64::from(x);
+                    }
+                }
+                let e = resid.iter().map(|r| r * r).sum::<f64>().sqrt();
+                // Rounded up for the f32 arithmetic of the bound.
+                out.push(-((e * (1.0 + 1e-4) + 1e-6) as f32));
+            }
+            out
+        };
+        LowRankFilter {
+            vis: project(&w.w_vis),
+            occ: project(&w.w_occ),
+        }
+    }
+}
+
+/// Stage 1's low-rank bound of a model: the basis of its components'
+/// filters and each component's filters in it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LowRank {
+    pub(super) basis: LowRankBasis,
+    pub(super) filters: Vec<LowRankFilter>,
+}
+
+impl LowRank {
+    pub fn new(views: &[ViewWeights]) -> Self {
+        let basis = LowRankBasis::new(views);
+        let filters = views.iter().map(|w| basis.filter(w)).collect();
+        Self { basis, filters }
+    }
+}
+
+/// The filters one dense bound reads: `stride` values per cell, the first
+/// `D` used.
+pub(super) struct BoundFilter<'a> {
+    rows: usize,
+    cols: usize,
+    stride: usize,
+    vis: &'a [f32],
+    occ: &'a [f32],
+    prior: &'a [f32],
+}
+
+impl<'a> BoundFilter<'a> {
+    pub(super) fn full(w: &'a ViewWeights) -> Self {
+        Self {
+            rows: w.rows,
+            cols: w.cols,
+            stride: HOG_STRIDE,
+            vis: &w.w_vis,
+            occ: &w.w_occ,
+            prior: &w.w_prior,
+        }
+    }
+
+    pub(super) fn low_rank(w: &'a ViewWeights, f: &'a LowRankFilter) -> Self {
+        Self {
+            rows: w.rows,
+            cols: w.cols,
+            stride: LOW_RANK_DIMS,
+            vis: &f.vis,
+            occ: &f.occ,
+            prior: &w.w_prior,
         }
     }
 }
@@ -216,9 +379,9 @@ pub(super) fn chain_step(
 /// the same operations in the same order whatever `NB` is.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-fn row_blocks<const NB: usize>(
+fn row_blocks<const NB: usize, const D: usize>(
     map: &PlanarMap,
-    w: &ViewWeights,
+    w: &BoundFilter,
     pair: f32,
     row: usize,
     ty: usize,
@@ -231,8 +394,8 @@ fn row_blocks<const NB: usize>(
     let mut r1 = [[0.0f32; LANES]; NB];
     for tx in 0..cols {
         let i = ty * cols + tx;
-        let wv = &w.w_vis[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
-        let wo = &w.w_occ[i * HOG_STRIDE..i * HOG_STRIDE + HOG_DIM];
+        let wv = &w.vis[i * w.stride..i * w.stride + D];
+        let wo = &w.occ[i * w.stride..i * w.stride + D];
         // Two partial sums per filter hide the multiply-add latency.
         let mut f0 = [[0.0f32; LANES]; NB];
         let mut f1 = [[0.0f32; LANES]; NB];
@@ -252,7 +415,7 @@ fn row_blocks<const NB: usize>(
             v
         };
         let mut d = 0;
-        while d + 1 < HOG_DIM {
+        while d + 1 < D {
             let (a0, a1, b0, b1) = (wv[d], wv[d + 1], wo[d], wo[d + 1]);
             let (p0, p1) = (plane(d), plane(d + 1));
             for b in 0..NB {
@@ -266,7 +429,7 @@ fn row_blocks<const NB: usize>(
             }
             d += 2;
         }
-        if d < HOG_DIM {
+        if d < D {
             let p0 = plane(d);
             for b in 0..NB {
                 let v0 = p0[b];
@@ -276,7 +439,7 @@ fn row_blocks<const NB: usize>(
                 }
             }
         }
-        let r = w.w_prior[i];
+        let r = w.prior[i];
         for b in 0..NB {
             // Half of each unary to the row chain, half to the column.
             let mut u0 = [0.0f32; LANES];
@@ -321,9 +484,9 @@ fn row_blocks<const NB: usize>(
 /// row reads (31 planes of one map row) stay in the L1 cache while every
 /// block of positions and every template column uses them.
 #[inline(always)]
-pub(super) fn dense_row_body(
+pub(super) fn dense_row_body<const D: usize>(
     map: &PlanarMap,
-    w: &ViewWeights,
+    w: &BoundFilter,
     pair: f32,
     x0: isize,
     y: isize,
@@ -347,11 +510,11 @@ pub(super) fn dense_row_body(
         // registers and take 180 ms).
         let mut blk = 0;
         while blk + 1 < blocks {
-            row_blocks::<2>(map, w, pair, row, ty, blk, blocks, s);
+            row_blocks::<2, D>(map, w, pair, row, ty, blk, blocks, s);
             blk += 2;
         }
         if blk < blocks {
-            row_blocks::<1>(map, w, pair, row, ty, blk, blocks, s);
+            row_blocks::<1, D>(map, w, pair, row, ty, blk, blocks, s);
         }
     }
     for tx in 0..cols {
@@ -369,35 +532,37 @@ pub(super) fn dense_row_body(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
-unsafe fn dense_row_avx512(
+unsafe fn dense_row_avx512<const D: usize>(
     map: &PlanarMap,
-    w: &ViewWeights,
+    w: &BoundFilter,
     pair: f32,
     x0: isize,
     y: isize,
     out: &mut [f32],
     s: &mut DenseScratch,
 ) {
-    dense_row_body(map, w, pair, x0, y, out, s)
+    dense_row_body::<D>(map, w, pair, x0, y, out, s)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn dense_row_avx2(
+unsafe fn dense_row_avx2<const D: usize>(
     map: &PlanarMap,
-    w: &ViewWeights,
+    w: &BoundFilter,
     pair: f32,
     x0: isize,
     y: isize,
     out: &mut [f32],
     s: &mut DenseScratch,
 ) {
-    dense_row_body(map, w, pair, x0, y, out, s)
+    dense_row_body::<D>(map, w, pair, x0, y, out, s)
 }
 
-pub(super) fn dense_row(
+/// One row of chain bounds over `D` feature planes with the best
+/// instruction set.
+pub(super) fn dense_row_with<const D: usize>(
     map: &PlanarMap,
-    w: &ViewWeights,
+    w: &BoundFilter,
     pair: f32,
     x0: isize,
     y: isize,
@@ -408,15 +573,28 @@ pub(super) fn dense_row(
     match crate::vision::simd::level() {
         // SAFETY: the features were detected at run time.
         crate::vision::simd::Simd::Avx512 => {
-            return unsafe { dense_row_avx512(map, w, pair, x0, y, out, s) }
+            return unsafe { dense_row_avx512::<D>(map, w, pair, x0, y, out, s) }
         }
         // SAFETY: the features were detected at run time.
         crate::vision::simd::Simd::Avx2 => {
-            return unsafe { dense_row_avx2(map, w, pair, x0, y, out, s) }
+            return unsafe { dense_row_avx2::<D>(map, w, pair, x0, y, out, s) }
         }
         crate::vision::simd::Simd::Portable => {}
     }
-    dense_row_body(map, w, pair, x0, y, out, s)
+    dense_row_body::<D>(map, w, pair, x0, y, out, s)
+}
+
+/// One row of the full chain bounds of `w` (see [`dense_row_body`]).
+pub(super) fn dense_row(
+    map: &PlanarMap,
+    w: &ViewWeights,
+    pair: f32,
+    x0: isize,
+    y: isize,
+    out: &mut [f32],
+    s: &mut DenseScratch,
+) {
+    dense_row_with::<HOG_DIM>(map, &BoundFilter::full(w), pair, x0, y, out, s)
 }
 
 /// Range of top-left positions along one axis whose box of `len` cells has
@@ -568,6 +746,7 @@ impl Detector<'_> {
         cut: f64,
         max_loss: f64,
         pre: Option<&LevelBounds>,
+        low_map: Option<&PlanarMap>,
     ) -> (usize, Vec<Candidate>) {
         let view = &self.views[vi];
         let (rows, cols) = (view.w.rows, view.w.cols);
@@ -593,8 +772,14 @@ impl Detector<'_> {
                 && b.values.len() == b.nx * b.ny
         });
         // Without usable bounds the caller may not have built the map.
+        let low = match (self.low_rank, low_map) {
+            (Some(lr), Some(lm)) if pre.is_none() && !lm.data.is_empty() => {
+                Some((lm, BoundFilter::low_rank(view.w, &lr.filters[vi])))
+            }
+            _ => None,
+        };
         let own;
-        let map = if params.prune && pre.is_none() && map.data.is_empty() {
+        let map = if params.prune && pre.is_none() && low.is_none() && map.data.is_empty() {
             own = PlanarMap::new(&level.hog, cols, rows);
             &own
         } else {
@@ -606,6 +791,8 @@ impl Detector<'_> {
                 if let Some(b) = pre {
                     let r = (y - y_lo) as usize * nx;
                     sums.copy_from_slice(&b.values[r..r + nx]);
+                } else if let Some((lm, f)) = &low {
+                    dense_row_with::<LOW_RANK_DIMS>(lm, f, pair, x_lo, y, &mut sums, &mut scratch);
                 } else {
                     dense_row(map, view.w, pair, x_lo, y, &mut sums, &mut scratch);
                 }
@@ -683,7 +870,15 @@ mod tests {
         let mut s = DenseScratch::default();
         for y in y_lo..=y_hi {
             let mut portable = vec![0.0f32; nx];
-            dense_row_body(&map, &w, 0.05, x_lo, y, &mut portable, &mut s);
+            dense_row_body::<HOG_DIM>(
+                &map,
+                &BoundFilter::full(&w),
+                0.05,
+                x_lo,
+                y,
+                &mut portable,
+                &mut s,
+            );
             let mut dispatched = vec![0.0f32; nx];
             dense_row(&map, &w, 0.05, x_lo, y, &mut dispatched, &mut s);
             assert_eq!(
@@ -699,11 +894,31 @@ mod tests {
                 {
                     let mut out = vec![0.0f32; nx];
                     // SAFETY: the features were detected at run time.
-                    unsafe { dense_row_avx2(&map, &w, 0.05, x_lo, y, &mut out, &mut s) };
+                    unsafe {
+                        dense_row_avx2::<HOG_DIM>(
+                            &map,
+                            &BoundFilter::full(&w),
+                            0.05,
+                            x_lo,
+                            y,
+                            &mut out,
+                            &mut s,
+                        )
+                    };
                     assert_eq!(portable, out, "AVX2, row {y}");
                     if crate::vision::simd::level() == crate::vision::simd::Simd::Avx512 {
                         // SAFETY: as above.
-                        unsafe { dense_row_avx512(&map, &w, 0.05, x_lo, y, &mut out, &mut s) };
+                        unsafe {
+                            dense_row_avx512::<HOG_DIM>(
+                                &map,
+                                &BoundFilter::full(&w),
+                                0.05,
+                                x_lo,
+                                y,
+                                &mut out,
+                                &mut s,
+                            )
+                        };
                         assert_eq!(portable, out, "AVX-512, row {y}");
                     }
                 }
@@ -774,6 +989,89 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    /// The low-rank bound is a lower bound of the full one at every
+    /// position (the min-cut stage then decides as before), and tight
+    /// where the filters lie in the basis.
+    #[test]
+    fn low_rank_bounds_stay_below_the_full_ones() {
+        let mut rng = SplitMix64::new(23);
+        let (mw, mh) = (29, 13);
+        let data: Vec<f32> = (0..mw * mh * HOG_STRIDE)
+            .map(|_| rng.range_f64(0.0, 0.3) as f32)
+            .collect();
+        let hog = HogMap::from_raw(mw, mh, data).unwrap();
+        let mut views = Vec::new();
+        for (rows, cols) in [(5, 4), (3, 6), (4, 4)] {
+            let mut w = ViewWeights::zeros(rows, cols, 4);
+            for v in w.w_vis.iter_mut().chain(w.w_occ.iter_mut()) {
+                *v = rng.range_f64(-0.5, 0.5) as f32;
+            }
+            for c in w
+                .w_vis
+                .chunks_mut(HOG_STRIDE)
+                .chain(w.w_occ.chunks_mut(HOG_STRIDE))
+            {
+                c[HOG_DIM..].iter_mut().for_each(|v| *v = 0.0);
+            }
+            for v in &mut w.w_prior {
+                *v = rng.range_f64(-0.2, 0.2) as f32;
+            }
+            w.w_pair = 0.05;
+            views.push(w);
+        }
+        let lr = LowRank::new(&views);
+        let pad = 6;
+        let map = PlanarMap::new(&hog, pad, pad);
+        let low = PlanarMap::projected(&hog, &lr.basis, pad, pad);
+        let mut s = DenseScratch::default();
+        let mut looser = 0.0f64;
+        let mut n = 0usize;
+        for (vi, w) in views.iter().enumerate() {
+            let (x_lo, x_hi, y_lo, y_hi, _) = scan_range(mw, mh, w.rows, w.cols, 0.5).unwrap();
+            let nx = (x_hi - x_lo + 1) as usize;
+            let f = BoundFilter::low_rank(w, &lr.filters[vi]);
+            for y in y_lo..=y_hi {
+                let mut full = vec![0.0f32; nx];
+                dense_row(&map, w, 0.05, x_lo, y, &mut full, &mut s);
+                let mut cheap = vec![0.0f32; nx];
+                dense_row_with::<LOW_RANK_DIMS>(&low, &f, 0.05, x_lo, y, &mut cheap, &mut s);
+                for (a, b) in full.iter().zip(&cheap) {
+                    assert!(b <= a, "low-rank {b} above full {a}");
+                    looser += f64::from(a - b);
+                    n += 1;
+                }
+            }
+        }
+        assert!(n > 100 && looser > 0.0);
+        // Filters inside a 10-dimensional subspace: the bound is exact up
+        // to rounding.
+        let basis = lr.basis.vectors.clone();
+        let mut w = views[0].clone();
+        for c in w
+            .w_vis
+            .chunks_mut(HOG_STRIDE)
+            .chain(w.w_occ.chunks_mut(HOG_STRIDE))
+        {
+            let a: Vec<f32> = (0..LOW_RANK)
+                .map(|_| rng.range_f64(-0.5, 0.5) as f32)
+                .collect();
+            for d in 0..HOG_DIM {
+                c[d] = (0..LOW_RANK).map(|k| a[k] * basis[k][d]).sum();
+            }
+        }
+        let f = lr.basis.filter(&w);
+        let bf = BoundFilter::low_rank(&w, &f);
+        let (x_lo, x_hi, y_lo, _, _) = scan_range(mw, mh, w.rows, w.cols, 0.5).unwrap();
+        let nx = (x_hi - x_lo + 1) as usize;
+        let mut full = vec![0.0f32; nx];
+        dense_row(&map, &w, 0.05, x_lo, y_lo + 2, &mut full, &mut s);
+        let mut cheap = vec![0.0f32; nx];
+        dense_row_with::<LOW_RANK_DIMS>(&low, &bf, 0.05, x_lo, y_lo + 2, &mut cheap, &mut s);
+        for (a, b) in full.iter().zip(&cheap) {
+            assert!(*b <= *a + 1e-5 && *a - *b < 1e-2, "{a} {b}");
         }
     }
 }

@@ -48,6 +48,7 @@ pub use bounds::{
     PlanarMaps,
 };
 use bounds::{overlap, positions, CliqueCounter, PlanarMap};
+pub use bounds::{LowRank, LOW_RANK};
 pub use transfer::Transfer;
 
 /// Detection settings.
@@ -278,6 +279,10 @@ pub struct Detector<'a> {
     groups: Vec<usize>,
     /// Stage 1's feature planes, built once for several models.
     maps: Option<&'a PlanarMaps<'a>>,
+    /// Stage 1 bounds through the low-rank basis of the components'
+    /// filters (looser, cheaper; the min-cut stage's own full bound and
+    /// the min-cuts are unchanged, so the detections are the same).
+    low_rank: Option<&'a LowRank>,
 }
 
 impl<'a> Detector<'a> {
@@ -303,6 +308,7 @@ impl<'a> Detector<'a> {
             transfer: None,
             groups,
             maps: None,
+            low_rank: None,
         })
     }
 
@@ -340,6 +346,15 @@ impl<'a> Detector<'a> {
     /// builds its own. The bounds are the same either way.
     pub fn with_maps(mut self, maps: &'a PlanarMaps<'a>) -> Self {
         self.maps = Some(maps);
+        self
+    }
+
+    /// The detector bounding stage 1 through `lr` (built from exactly
+    /// these viewpoints' weights) instead of the full filters.
+    pub fn with_low_rank(mut self, lr: &'a LowRank) -> Self {
+        if lr.filters.len() == self.views.len() {
+            self.low_rank = Some(lr);
+        }
         self
     }
 
@@ -463,7 +478,7 @@ impl<'a> Detector<'a> {
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
         let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
         let own: Vec<PlanarMap>;
-        let maps: &[PlanarMap] = if params.prune && pre.is_none() {
+        let maps: &[PlanarMap] = if params.prune && pre.is_none() && self.low_rank.is_none() {
             match self.maps.filter(|m| m.serves(pyr, pad_x, pad_y)) {
                 Some(m) => &m.maps,
                 None => {
@@ -486,6 +501,14 @@ impl<'a> Detector<'a> {
         } else {
             Vec::new()
         };
+        let low_maps: Vec<PlanarMap> = match self.low_rank {
+            Some(lr) if params.prune && pre.is_none() => pyr
+                .levels
+                .par_iter()
+                .map(|l| PlanarMap::projected(&l.hog, &lr.basis, pad_x, pad_y))
+                .collect(),
+            _ => Vec::new(),
+        };
         let empty = PlanarMap::new(&HogMap::zeros(0, 0), 0, 0);
         let jobs: Vec<(usize, usize)> = (0..pyr.levels.len())
             .flat_map(|l| (0..self.views.len()).map(move |v| (l, v)))
@@ -499,7 +522,18 @@ impl<'a> Detector<'a> {
                 let map = maps.get(l).unwrap_or(&empty);
                 let level = &pyr.levels[l];
                 let b = pre.and_then(|b| b.get(l, v));
-                self.scan_level(l, level, map, counters.get(l), v, params, cut, max_loss, b)
+                self.scan_level(
+                    l,
+                    level,
+                    map,
+                    counters.get(l),
+                    v,
+                    params,
+                    cut,
+                    max_loss,
+                    b,
+                    low_maps.get(l),
+                )
             })
             .collect();
         let mut cands: Vec<Candidate> = Vec::new();
