@@ -560,6 +560,15 @@ fn low_rank_stage_one_gives_the_same_detections() {
                 .unwrap();
             assert_eq!(full.0, low.0, "max_detections {max_detections}");
             assert!(!full.0.is_empty());
+            // The low-rank bound is looser: no more locations leave at
+            // stage 1 than with the full one.
+            assert!(low.1.pruned_stage1 <= full.1.pruned_stage1);
+            eprintln!(
+                "stage 1 kept {} of {} (low-rank) against {} (full)",
+                low.1.locations - low.1.pruned_stage1,
+                low.1.locations,
+                full.1.locations - full.1.pruned_stage1
+            );
         }
     }
 }

@@ -35,9 +35,11 @@ pub(crate) struct TrainArgs {
     /// occluders), `boxes` (its box-only photographs; visibility and
     /// component latent). With --coco: `views` treats the masked
     /// annotations as unoccluded views to augment, `boxes` uses box-only
-    /// annotations (no segmentation).
-    #[arg(long, value_delimiter = ',', default_value = "single,views,boxes", value_parser = Source::parse)]
-    pub(crate) sources: Vec<Source>,
+    /// annotations (no segmentation). Default: `single,views,boxes` with
+    /// --ko8 (`single` where the multi-view part is absent), `single,boxes`
+    /// with --coco.
+    #[arg(long, value_delimiter = ',', value_parser = Source::parse)]
+    pub(crate) sources: Option<Vec<Source>>,
     /// View components per object (the views are grouped by appearance and
     /// aspect ratio; capped at the number of views).
     #[arg(long, default_value_t = MultiViewParams::default().components)]
@@ -102,11 +104,15 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 eprintln!("skipped: {s}");
             }
             let pb = progress_bar(0, cat);
+            let sources = args
+                .sources
+                .clone()
+                .unwrap_or_else(|| vec![Source::Single, Source::Boxes]);
             let r = train_coco(
                 cat,
                 loaded.samples,
                 &extra_negatives,
-                &args.sources,
+                &sources,
                 &cache,
                 &params,
                 &mv,
@@ -124,7 +130,20 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             .ok_or_else(|| Failure::input("--ko8 or --coco is required"))?;
         // Views and boxes load every object: the others' views are
         // occluders and negatives, their photographs negatives.
-        let multi = args.sources != [Source::Single];
+        let sources = match &args.sources {
+            Some(s) => s.clone(),
+            None if root.join("multiple/train").is_dir() => {
+                vec![Source::Single, Source::Views, Source::Boxes]
+            }
+            None => {
+                eprintln!(
+                    "note: {} has no multi-view part (multiple/): training from the single-pose photographs",
+                    root.display()
+                );
+                vec![Source::Single]
+            }
+        };
+        let multi = sources != [Source::Single];
         let mut data =
             Ko8Data::load(root, if multi { &[] } else { &args.objects }).map_err(Failure::input)?;
         if let Some(n) = args.boxes_first {
@@ -153,7 +172,7 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             for oi in chosen {
                 let pb = progress_bar(0, &data.objects[oi]);
                 let (m, mut r) =
-                    train_object_sources(&data, oi, &args.sources, &params, &neg, &mv, &cache, &pb)
+                    train_object_sources(&data, oi, &sources, &params, &neg, &mv, &cache, &pb)
                         .map_err(Failure::input)?;
                 pb.finish_and_clear();
                 let last = r.rounds.pop().unwrap_or_default();

@@ -43,7 +43,10 @@ pub struct MultiViewParams {
 impl Default for MultiViewParams {
     fn default() -> Self {
         Self {
-            components: 3,
+            // One component measured best from 25 views (views only, 30
+            // development photographs of cup, shaker, scissors: mean AUC
+            // 0.649 with one, 0.582 with three).
+            components: 1,
             augment: AugmentParams::default(),
             latent_rounds: 2,
             min_iou: 0.6,
