@@ -43,6 +43,10 @@ pub(crate) struct EvalArgs {
 
 pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     let data = Ko8Data::load(&args.ko8, &args.objects).map_err(Failure::input)?;
+    let data = match args.part {
+        Part::Single => data,
+        Part::Multiple => data.with_multiview(&args.ko8).map_err(Failure::input)?,
+    };
     let models = load_model_dir(&args.models_dir)?;
     let refs: Vec<&Model> = models.iter().collect();
     let every = args.every.max(1);

@@ -255,8 +255,9 @@ fn write_coco(
         .map_err(|e| Failure::io(format!("{}: {e}", path.display())))
 }
 
-/// The background images of a folder, sorted by name.
-fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
+/// The JPEG and PNG images of a folder, sorted by name (background or
+/// negative scenes).
+pub(crate) fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
         .filter_map(|e| e.ok().map(|e| e.path()))
@@ -269,7 +270,7 @@ fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
     files.sort();
     if files.is_empty() {
         return Err(Failure::input(format!(
-            "{}: no JPEG or PNG background images",
+            "{}: no JPEG or PNG images",
             dir.display()
         )));
     }

@@ -94,7 +94,7 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
     let trained = if let Some(coco) = &args.coco {
         let dir = args.images.clone().unwrap_or_default();
         let extra_negatives = match &args.negatives {
-            Some(d) => image_folder(d)?,
+            Some(d) => image_files(d)?.into_iter().map(Sample::negative).collect(),
             None => Vec::new(),
         };
         let mut out = Vec::new();
@@ -144,8 +144,12 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             }
         };
         let multi = sources != [Source::Single];
-        let mut data =
-            Ko8Data::load(root, if multi { &[] } else { &args.objects }).map_err(Failure::input)?;
+        let mut data = if multi {
+            Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root))
+        } else {
+            Ko8Data::load(root, &args.objects)
+        }
+        .map_err(Failure::input)?;
         if let Some(n) = args.boxes_first {
             for p in &mut data.photos {
                 p.truncate(n);
@@ -275,37 +279,6 @@ impl TrainArgs {
         mv.validate().map_err(Failure::input)?;
         Ok(mv)
     }
-}
-
-/// The images of a folder (sorted) as negative samples.
-fn image_folder(dir: &std::path::Path) -> Result<Vec<Sample>, Failure> {
-    let rd = std::fs::read_dir(dir).map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?;
-    let mut paths: Vec<PathBuf> = rd
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .and_then(|x| x.to_str())
-                .is_some_and(|x| matches!(x.to_ascii_lowercase().as_str(), "jpg" | "jpeg" | "png"))
-        })
-        .collect();
-    paths.sort();
-    if paths.is_empty() {
-        return Err(Failure::input(format!(
-            "{}: no .jpg or .png image to use as a negative",
-            dir.display()
-        )));
-    }
-    Ok(paths
-        .into_iter()
-        .map(|p| Sample {
-            id: p
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default(),
-            image: p,
-            annotation: None,
-        })
-        .collect())
 }
 
 /// One COCO category from its samples and `sources`: masked annotations

@@ -4,7 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{check_box, invalid, load_mask, Annotation, DatasetError, Loaded, Sample};
+use super::{check_box, file_stem, invalid, load_mask, Annotation, DatasetError, Loaded, Sample};
 use crate::vision::mask::Mask;
 
 /// Parses a CMU_KO8 `.bbox`: `cx cy w h` (the box CENTRE), separated by
@@ -129,10 +129,7 @@ impl Ko8 {
         let dir = self.root.join("single/test").join(object);
         let mut out = Loaded::default();
         for bbox_path in sorted_files(&dir, ".bbox")? {
-            let stem = bbox_path
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
+            let stem = file_stem(&bbox_path);
             match self.test_sample(object, &train, &dir, &stem) {
                 Ok(s) => out.samples.push(s),
                 Err(e) => out.skipped.push(e.to_string()),
@@ -194,10 +191,7 @@ impl Ko8 {
         let dir = self.root.join("multiple/train").join(object);
         let mut out = Loaded::default();
         for image in sorted_files(&dir, ".jpg")? {
-            let stem = image
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
+            let stem = file_stem(&image);
             let mask_path = dir.join(format!("{stem}_mask.png"));
             if !mask_path.is_file() {
                 out.skipped.push(format!(
@@ -245,10 +239,7 @@ impl Ko8 {
         let dir = self.root.join("multiple/test").join(object);
         let mut out = Loaded::default();
         for bbox_path in sorted_files(&dir, ".bbox")? {
-            let stem = bbox_path
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
+            let stem = file_stem(&bbox_path);
             match box_photo(object, &dir, &stem) {
                 Ok(s) => out.samples.push(s),
                 Err(e) => out.skipped.push(e.to_string()),
@@ -261,14 +252,7 @@ impl Ko8 {
     pub fn negatives(&self) -> Result<Vec<Sample>, DatasetError> {
         Ok(sorted_files(&self.root.join("negative"), ".jpg")?
             .into_iter()
-            .map(|p| Sample {
-                id: p
-                    .file_stem()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default(),
-                image: p,
-                annotation: None,
-            })
+            .map(Sample::negative)
             .collect())
     }
 }

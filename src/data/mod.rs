@@ -66,6 +66,24 @@ pub struct Sample {
     pub annotation: Option<Annotation>,
 }
 
+impl Sample {
+    /// An image without the object, named by its file stem.
+    pub fn negative(image: PathBuf) -> Self {
+        Self {
+            id: file_stem(&image),
+            image,
+            annotation: None,
+        }
+    }
+}
+
+/// A file's name without its extension (empty when it has none).
+pub fn file_stem(path: &Path) -> String {
+    path.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
 /// Samples read from a dataset, plus the ones refused and why.
 #[derive(Debug, Default)]
 pub struct Loaded {

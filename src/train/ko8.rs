@@ -48,8 +48,8 @@ pub struct Ko8Data {
     /// Annotated images per object, sorted by id.
     pub images: Vec<Vec<Sample>>,
     pub negatives: Vec<Sample>,
-    /// Multi-view part (empty where it is absent): each object's
-    /// unoccluded views and its box-only photographs.
+    /// Multi-view part (empty unless [`Ko8Data::with_multiview`] read
+    /// it): each object's unoccluded views and its box-only photographs.
     pub views: Vec<Vec<Sample>>,
     pub photos: Vec<Vec<Sample>>,
     pub skipped: Vec<String>,
@@ -64,30 +64,38 @@ impl Ko8Data {
             objects.to_vec()
         };
         let mut images = Vec::new();
-        let mut views = Vec::new();
-        let mut photos = Vec::new();
         let mut skipped = Vec::new();
         for o in &objects {
             let l = ko8.test_samples(o)?;
             skipped.extend(l.skipped);
             images.push(l.samples);
-            if ko8.has_multiple() {
-                let l = ko8.views(o)?;
-                skipped.extend(l.skipped);
-                views.push(l.samples);
-                let l = ko8.box_photos(o)?;
-                skipped.extend(l.skipped);
-                photos.push(l.samples);
-            }
         }
         Ok(Self {
             objects,
             images,
             negatives: ko8.negatives()?,
-            views,
-            photos,
+            views: Vec::new(),
+            photos: Vec::new(),
             skipped,
         })
+    }
+
+    /// Also reads the multi-view part (every object's views and box-only
+    /// photographs), where the root has one.
+    pub fn with_multiview(mut self, root: &Path) -> Result<Self, TrainError> {
+        let ko8 = Ko8::open(root)?;
+        if !ko8.has_multiple() {
+            return Ok(self);
+        }
+        for o in &self.objects {
+            let l = ko8.views(o)?;
+            self.skipped.extend(l.skipped);
+            self.views.push(l.samples);
+            let l = ko8.box_photos(o)?;
+            self.skipped.extend(l.skipped);
+            self.photos.push(l.samples);
+        }
+        Ok(self)
     }
 
     /// Training images of object `oi`, leaving out fold `fold` of `folds`
