@@ -56,6 +56,17 @@ pub(crate) struct TrainArgs {
     /// patches, smooth colours).
     #[arg(long, value_name = "O,P,S")]
     pub(crate) occluders: Option<String>,
+    /// Share of the view photographs whose surroundings are replaced by a
+    /// crop of a negative scene (the object pasted onto clutter).
+    #[arg(long, default_value_t = AugmentParams::default().backdrop)]
+    pub(crate) backdrop: f64,
+    /// Range of an occluder's depth into the box, as a share of the box
+    /// (MIN,MAX).
+    #[arg(long, value_name = "MIN,MAX")]
+    pub(crate) occlusion: Option<String>,
+    /// Share of the view photographs with an occluder.
+    #[arg(long, default_value_t = AugmentParams::default().occluded_share)]
+    pub(crate) occluded_share: f64,
     /// Use only the first N box-only photographs of each object (sorted
     /// by name; default all), e.g. to score the others with `eval --part
     /// multiple --skip-first N`.
@@ -259,6 +270,21 @@ impl TrainArgs {
         };
         mv.augment.per_view = self.per_view;
         mv.augment.mirror = !self.no_mirror;
+        mv.augment.backdrop = self.backdrop;
+        mv.augment.occluded_share = self.occluded_share;
+        if let Some(o) = &self.occlusion {
+            let v: Vec<f64> = o
+                .split(',')
+                .map(|x| x.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| Failure::input(format!("--occlusion {o:?}: {e}")))?;
+            let [lo, hi] = v[..] else {
+                return Err(Failure::input(format!(
+                    "--occlusion {o:?}: expected MIN,MAX"
+                )));
+            };
+            mv.augment.occlusion = [lo, hi];
+        }
         if let Some(o) = &self.occluders {
             let v: Vec<f64> = o
                 .split(',')

@@ -82,11 +82,12 @@ pub struct ImputeRound {
 }
 
 /// Imputes every box-only sample's component and visible mask under
-/// `model` (its components labelled `label`), in place; samples with a
-/// known mask are left alone.
+/// `model` (its components labelled `label`, from `first_component` on),
+/// in place; samples with a known mask are left alone.
 pub fn impute_samples(
     model: &Model,
     label: &str,
+    first_component: usize,
     samples: &mut [Sample],
     cache: &PyramidCache,
     min_iou: f64,
@@ -98,7 +99,7 @@ pub fn impute_samples(
         .viewpoints
         .iter()
         .enumerate()
-        .filter(|(_, v)| v.label == label)
+        .filter(|(i, v)| v.label == label && *i >= first_component)
         .map(|(i, _)| i)
         .collect();
     let max_trunc = model.meta.detection.max_truncation;

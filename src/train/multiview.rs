@@ -312,9 +312,15 @@ pub fn train_sources(
         report.rounds.push(r);
         m
     };
+    // Box-only photographs go to the view components where there are
+    // any: the masked photographs' components keep their exact masks
+    // (with the boxes imputed into the single-pose component too, the cup's
+    // segmentation error on its own single-pose photographs rose from
+    // 0.152 to 0.189 while 29 of its 30 box photographs went there).
+    let first = if src.views.is_empty() { 0 } else { offset };
     if !boxes.is_empty() {
         for _ in 0..mv.latent_rounds {
-            let round = impute_samples(&model, label, &mut boxes, cache, mv.min_iou)?;
+            let round = impute_samples(&model, label, first, &mut boxes, cache, mv.min_iou)?;
             progress.set_message(format!(
                 "{label}: imputed {} boxes, {} component changes, {:.2} visible",
                 round.boxes, round.component_changes, round.mean_visible
