@@ -77,7 +77,9 @@ pub(crate) struct TrainSettings {
     /// image edge, as Gao et al. 2011 (default: every 4-connected pair).
     #[arg(long)]
     pub(crate) edge_pairwise: bool,
-    /// Detection threshold saved in the models.
+    /// Detection threshold saved in the models (default -0.75; -1.0 for
+    /// models trained without masked photographs, `train --sources` without
+    /// `single`).
     #[arg(long, allow_negative_numbers = true)]
     pub(crate) threshold: Option<f64>,
     /// Images of each other object used as negatives.
