@@ -285,7 +285,7 @@ pub fn detect_prebuilt_with(
                 .filter(|&(mi, _)| {
                     of_model[mi] == idx
                         && bounds.get(mi).copied().flatten().is_none()
-                        && !uses_low_rank(models[mi])
+                        && !uses_low_rank()
                 })
                 .map(|(_, model)| model.views.as_slice())
                 .collect();
@@ -383,7 +383,7 @@ fn scan_model<'a>(
         .map(|v| labels.iter().position(|l| *l == v.label).unwrap_or(0))
         .collect();
     let mut detector = Detector::new(&model.views)?.with_groups(groups)?;
-    if uses_low_rank(model) {
+    if uses_low_rank() {
         detector = detector.with_low_rank(model.low_rank());
     } else if let Some(maps) = maps {
         detector = detector.with_maps(maps);
@@ -573,14 +573,14 @@ pub fn overlay(img: &ColorImage, resp: &DetectResponse) -> image::RgbImage {
     out
 }
 
-/// Whether stage 1 of `model` bounds through the low-rank basis of its
+/// Whether stage 1 bounds through the low-rank basis of a model's
 /// components' filters ([`crate::vision::detect::LowRank`]): only where
 /// `SDHOP_STAGE1=low-rank` asks for it. The detections are the same either
 /// way, but measured on the CMU_KO8 photographs with eight 3-component
 /// models it is slower: the bound stage takes half the time (739 against
 /// 1392 ms per image on one thread), but the looser bounds send 1604
 /// locations to the min-cut stage instead of 905 (6.4 s against 0.64 s).
-pub fn uses_low_rank(_model: &Model) -> bool {
+pub fn uses_low_rank() -> bool {
     static MODE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| std::env::var("SDHOP_STAGE1").as_deref() == Ok("low-rank"))
 }

@@ -23,6 +23,7 @@ use crate::vision::hog::{hog, CELL_SIZE};
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::rng::SplitMix64;
+use crate::vision::shape::box_blur;
 
 /// One unoccluded view: its image, mask and the mask's tight box.
 #[derive(Clone)]
@@ -305,26 +306,15 @@ fn occluder_shape(
 /// The mask as weights in 0..1, its outline softened by two passes of a
 /// 3x3 box filter (a hard cut would leave an edge no photograph has).
 fn feathered(mask: &Mask) -> Vec<f32> {
-    let (w, h) = (mask.width, mask.height);
-    let mut a: Vec<f32> = mask.data.iter().map(|&m| f32::from(m != 0)).collect();
-    for _ in 0..2 {
-        let mut out = vec![0.0f32; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let mut sum = 0.0;
-                let mut n = 0.0;
-                for v in y.saturating_sub(1)..(y + 2).min(h) {
-                    for u in x.saturating_sub(1)..(x + 2).min(w) {
-                        sum += a[v * w + u];
-                        n += 1.0;
-                    }
-                }
-                out[y * w + x] = sum / n;
-            }
-        }
-        a = out;
-    }
-    a
+    let a = mask
+        .data
+        .iter()
+        .map(|&m| f64::from(u8::from(m != 0)))
+        .collect();
+    box_blur(a, mask.width, mask.height, 1)
+        .into_iter()
+        .map(|v| v as f32)
+        .collect()
 }
 
 /// A crop of `bg` resampled to `width x height` (random place and scale).

@@ -174,30 +174,7 @@ impl ShapeModel {
             return self.clone();
         }
         let (w, h) = (self.width, self.height);
-        let mut a: Vec<f64> = self.prob.iter().map(|&p| f64::from(p)).collect();
-        let pass = |src: &[f64], horizontal: bool| -> Vec<f64> {
-            let mut out = vec![0.0; w * h];
-            for y in 0..h {
-                for x in 0..w {
-                    let (mut sum, mut n) = (0.0, 0.0);
-                    for d in -(r as isize)..=(r as isize) {
-                        let (xx, yy) = if horizontal {
-                            ((x as isize + d).clamp(0, w as isize - 1) as usize, y)
-                        } else {
-                            (x, (y as isize + d).clamp(0, h as isize - 1) as usize)
-                        };
-                        sum += src[yy * w + xx];
-                        n += 1.0;
-                    }
-                    out[y * w + x] = sum / n;
-                }
-            }
-            out
-        };
-        for _ in 0..2 {
-            a = pass(&a, true);
-            a = pass(&a, false);
-        }
+        let a = box_blur(self.prob.iter().map(|&p| f64::from(p)).collect(), w, h, r);
         Self {
             width: w,
             height: h,
@@ -228,6 +205,36 @@ impl ShapeModel {
         let v = ((fy * self.height as f64) as usize).min(self.height - 1);
         f64::from(self.prob[v * self.width + u])
     }
+}
+
+/// `a` (`w x h`, row-major) smoothed by two passes of a box filter of
+/// half-width `r` each way, horizontal then vertical (about a Gaussian of
+/// sigma `r`; edges clamp).
+pub fn box_blur(mut a: Vec<f64>, w: usize, h: usize, r: usize) -> Vec<f64> {
+    let pass = |src: &[f64], horizontal: bool| -> Vec<f64> {
+        let mut out = vec![0.0; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (mut sum, mut n) = (0.0, 0.0);
+                for d in -(r as isize)..=(r as isize) {
+                    let (xx, yy) = if horizontal {
+                        ((x as isize + d).clamp(0, w as isize - 1) as usize, y)
+                    } else {
+                        (x, (y as isize + d).clamp(0, h as isize - 1) as usize)
+                    };
+                    sum += src[yy * w + xx];
+                    n += 1.0;
+                }
+                out[y * w + x] = sum / n;
+            }
+        }
+        out
+    };
+    for _ in 0..2 {
+        a = pass(&a, true);
+        a = pass(&a, false);
+    }
+    a
 }
 
 #[cfg(test)]
