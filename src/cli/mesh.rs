@@ -6,8 +6,15 @@
 use super::*;
 use crate::eval::bop_detect::auc_curve;
 use crate::pose::mesh::Mesh;
-use crate::train::mesh::{render_set, render_set_with, Occluder, RenderParams};
-use crate::train::train_joint;
+use crate::train::mesh::{
+    render_set, render_set_with, representative_rotations, Occluder, RenderParams,
+    ROTATIONS_PER_COMPONENT,
+};
+use crate::train::multiview::{train_sources, MultiViewParams, Sources};
+use crate::train::views::{OccluderKinds, View};
+use crate::train::{train_joint, TrainReport};
+use nalgebra::Vector3;
+use std::sync::Arc;
 
 #[derive(clap::Args)]
 pub(crate) struct MeshArgs {
@@ -79,6 +86,20 @@ pub(crate) struct MeshArgs {
     /// Seed of the renders.
     #[arg(long, default_value_t = 1)]
     pub(crate) render_seed: u64,
+    /// Train as `train --sources views` does from photographed views: the
+    /// `--renders` are drawn without occluders and become views, grouped
+    /// by appearance and shape into `--components`, each made into
+    /// `--per-view` training photographs (shifted, scaled, turned,
+    /// jittered, half of them on a crop of a background photograph,
+    /// `--occluded-share` with an occluder covering `--occlusion` of the
+    /// box: smooth colours, or for a `--patch-occluders` share background
+    /// patches), and the renders with the object painted over are
+    /// negatives. One object per model.
+    #[arg(long)]
+    pub(crate) from_views: bool,
+    /// With `--from-views`: training photographs made from each view.
+    #[arg(long, default_value_t = 3, requires = "from_views")]
+    pub(crate) per_view: usize,
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
 }
@@ -337,6 +358,11 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     if let Some(dup) = args.name.iter().find(|n| !seen.insert(n.as_str())) {
         return Err(Failure::input(format!("--name {dup} given twice")));
     }
+    if args.from_views && args.mesh.len() > 1 {
+        return Err(Failure::input(
+            "--from-views trains one object per model: run it once per --mesh",
+        ));
+    }
     let model_name = match (&args.model_name, &args.name[..]) {
         (Some(m), _) => m.clone(),
         (None, [one]) => one.clone(),
@@ -389,6 +415,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let mut samples: Vec<Sample> = Vec::new();
     let mut directions = Vec::new();
     let mut rotations = Vec::new();
+    let mut poses = Vec::new();
     for (k, o) in objects.iter().enumerate() {
         let sub = if objects.len() > 1 {
             work.join(&o.name)
@@ -399,6 +426,12 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         let pb = progress_bar(render.renders as u64, &format!("{}: rendering", o.name));
         let seeded = RenderParams {
             seed: render.seed.wrapping_add(104_729 * k as u64),
+            // Views are clean: the occluders come with the augmentation.
+            occluded_share: if args.from_views {
+                0.0
+            } else {
+                render.occluded_share
+            },
             ..render.clone()
         };
         let same = |f: &PathBuf| match (f.canonicalize(), o.file.canonicalize()) {
@@ -444,6 +477,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         write_coco(&sub, &o.name, &set.samples, &set.poses, first_view)?;
         directions.extend(set.directions);
         rotations.extend(set.rotations);
+        poses.extend(set.poses);
         samples.extend(set.samples);
     }
     let render_s = start.elapsed().as_secs_f64();
@@ -461,15 +495,31 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             annotation: None,
         })
         .collect();
-    let refs: Vec<&Sample> = samples.iter().chain(&negatives).collect();
     // Pyramids without their pixels: the renders' and negatives' images
     // and per-pixel segments are a quarter of the memory, and training
     // needs none of them (LM-O cat: 3.79 GiB peak with them).
     let cache = PyramidCache::lean();
     let pb = progress_bar(0, &format!("{model_name}: training"));
-    let labels: Vec<&str> = args.name.iter().map(String::as_str).collect();
-    let (mut model, report) =
-        train_joint(&model_name, &labels, &refs, &cache, &params, &pb).map_err(Failure::input)?;
+    let (mut model, report) = if args.from_views {
+        let views_route = train_from_views(
+            &objects[0],
+            &samples,
+            &poses,
+            &negatives,
+            &backgrounds,
+            args,
+            &cache,
+            &params,
+            &pb,
+        )?;
+        directions = views_route.directions;
+        rotations = views_route.rotations;
+        (views_route.model, views_route.report)
+    } else {
+        let refs: Vec<&Sample> = samples.iter().chain(&negatives).collect();
+        let labels: Vec<&str> = args.name.iter().map(String::as_str).collect();
+        train_joint(&model_name, &labels, &refs, &cache, &params, &pb).map_err(Failure::input)?
+    };
     pb.finish_and_clear();
     drop(cache);
     eprintln!(
@@ -530,6 +580,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
                     .map(|f| f.display().to_string())
                     .collect::<Vec<_>>(),
                 "render": render,
+                "from_views": args.from_views,
                 "backgrounds": args.backgrounds.display().to_string(),
                 "negatives": negatives.len(),
             }),
@@ -564,3 +615,114 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     );
     Ok(())
 }
+
+/// A model of one object trained through the views route, and each
+/// component's mean viewing direction and representative rotations.
+struct ViewsRoute {
+    model: Model,
+    report: TrainReport,
+    directions: Vec<[f64; 3]>,
+    rotations: Vec<Vec<[f64; 4]>>,
+}
+
+/// `--from-views`: the clean `renders` (with their `poses`) become views
+/// and train as photographed views do (`train::multiview`); a component's
+/// direction is the mean of its views' directions (object towards camera,
+/// mesh frame).
+#[allow(clippy::too_many_arguments)]
+fn train_from_views(
+    object: &Object,
+    renders: &[Sample],
+    poses: &[crate::pose::Pose],
+    negatives: &[Sample],
+    backgrounds: &[ColorImage],
+    args: &MeshArgs,
+    cache: &PyramidCache,
+    params: &TrainParams,
+    pb: &indicatif::ProgressBar,
+) -> Result<ViewsRoute, Failure> {
+    let views: Vec<View> = renders
+        .iter()
+        .map(View::from_sample)
+        .collect::<Result<_, _>>()
+        .map_err(Failure::input)?;
+    let mut mv = MultiViewParams {
+        components: args.components,
+        ..MultiViewParams::default()
+    };
+    mv.augment.per_view = args.per_view;
+    // Any viewpoint can be rendered: a mirrored view is not needed, and
+    // for an object without a plane of symmetry it would be wrong.
+    mv.augment.mirror = false;
+    mv.augment.occluded_share = args.occluded_share;
+    mv.augment.occlusion = args.occlusion;
+    mv.augment.kinds = OccluderKinds {
+        objects: 0.0,
+        patches: args.patch_occluders,
+        smooth: 1.0 - args.patch_occluders,
+    };
+    mv.augment.seed = args.render_seed;
+    mv.validate().map_err(Failure::input)?;
+    let scenes: Vec<Arc<ColorImage>> = backgrounds
+        .iter()
+        .take(BACKDROP_SCENES)
+        .cloned()
+        .map(Arc::new)
+        .collect();
+    let src = Sources {
+        fixed: negatives.iter().collect(),
+        views,
+        occluders: Vec::new(),
+        backgrounds: scenes,
+        boxes: Vec::new(),
+    };
+    let (model, mut report) =
+        train_sources(&object.name, src, cache, params, &mv, pb).map_err(Failure::input)?;
+    // Each render's direction and rotation, by its id.
+    let (lo, hi) = object.mesh.vertices.iter().fold(
+        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
+        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
+    );
+    let centre = (lo + hi) / 2.0;
+    let index: std::collections::HashMap<&str, usize> = renders
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.id.as_str(), i))
+        .collect();
+    let mut assign = vec![usize::MAX; renders.len()];
+    for (c, names) in report.components.iter().enumerate() {
+        for n in names {
+            if let Some(&i) = index.get(n.as_str()) {
+                assign[i] = c;
+            }
+        }
+    }
+    let k = report.components.len();
+    let mut directions = vec![[0.0; 3]; k];
+    for (pose, &c) in poses.iter().zip(&assign).filter(|(_, &c)| c < k) {
+        let camera = -(pose.rotation.transpose() * pose.translation);
+        let d = (camera - centre).normalize();
+        for (a, b) in directions[c].iter_mut().zip(d.iter()) {
+            *a += b;
+        }
+    }
+    for d in &mut directions {
+        let v = Vector3::from(*d);
+        *d = if v.norm() > 1e-12 {
+            v.normalize().into()
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+    }
+    let rs: Vec<nalgebra::Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
+    let rotations = representative_rotations(&rs, &assign, k, ROTATIONS_PER_COMPONENT);
+    Ok(ViewsRoute {
+        model,
+        report: report.rounds.pop().unwrap_or_default(),
+        directions,
+        rotations,
+    })
+}
+
+/// Background photographs that views are set on (`--from-views`).
+const BACKDROP_SCENES: usize = 20;

@@ -41,9 +41,17 @@ pub(crate) struct TrainArgs {
     #[arg(long, value_delimiter = ',', value_parser = Source::parse)]
     pub(crate) sources: Option<Vec<Source>>,
     /// View components per object (the views are grouped by appearance and
-    /// aspect ratio; capped at the number of views).
-    #[arg(long, default_value_t = MultiViewParams::default().components)]
-    pub(crate) components: usize,
+    /// aspect ratio; capped at the number of views). Several numbers,
+    /// comma-separated (e.g. `1,2,3`), are chosen among by cross-validation
+    /// over the views (`--cv-folds` folds: each trains from the other
+    /// views and is scored on occluded photographs made from its own); the
+    /// figures are saved in the model's provenance.
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    pub(crate) components: Vec<usize>,
+    /// Folds of the cross-validation that chooses among several
+    /// `--components`.
+    #[arg(long, default_value_t = MultiViewParams::default().cv_folds)]
+    pub(crate) cv_folds: usize,
     /// Photographs made from each view (plus as many mirrored).
     #[arg(long, default_value_t = AugmentParams::default().per_view)]
     pub(crate) per_view: usize,
@@ -210,6 +218,19 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                     train_object_sources(&data, oi, &sources, &params, &neg, &mv, &cache, &pb)
                         .map_err(Failure::input)?;
                 pb.finish_and_clear();
+                if let Some(cv) = &r.components_cv {
+                    eprintln!(
+                        "{}: components by {}-fold cross-validation over the views: {} -> {}",
+                        data.objects[oi],
+                        cv.folds,
+                        cv.candidates
+                            .iter()
+                            .map(|(k, auc, _)| format!("{k}: AUC {auc:.3}"))
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                        cv.chosen
+                    );
+                }
                 let last = r.rounds.pop().unwrap_or_default();
                 out.push((m, last));
             }
@@ -284,7 +305,13 @@ impl TrainArgs {
     /// The multi-view settings from the flags.
     fn multiview(&self) -> Result<MultiViewParams, Failure> {
         let mut mv = MultiViewParams {
-            components: self.components,
+            components: self.components.first().copied().unwrap_or(1),
+            choose_from: if self.components.len() > 1 {
+                self.components.clone()
+            } else {
+                Vec::new()
+            },
+            cv_folds: self.cv_folds,
             latent_rounds: self.latent_rounds,
             ..MultiViewParams::default()
         };

@@ -19,6 +19,7 @@
 //! loss, the QP and the CMU_KO8 driver are already their own modules.
 
 pub mod cache;
+pub mod components;
 pub mod ko8;
 pub mod latent;
 pub mod layout;

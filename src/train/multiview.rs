@@ -12,6 +12,7 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::components::{choose_components, ComponentsCv};
 use super::latent::{impute_samples, ImputeRound};
 use super::views::{
     augment_view, background_negative, group_views, view_descriptor, view_distances, AugmentParams,
@@ -32,6 +33,11 @@ pub struct MultiViewParams {
     /// Components the views are grouped into (capped at the number of
     /// views).
     pub components: usize,
+    /// Numbers of components to choose from by cross-validation over the
+    /// views (`train::components`); empty: `components`.
+    pub choose_from: Vec<usize>,
+    /// Folds of that cross-validation.
+    pub cv_folds: usize,
     pub augment: AugmentParams,
     /// CCCP rounds for box-only photographs: each imputes their
     /// visibility and component under the current model and retrains.
@@ -47,6 +53,8 @@ impl Default for MultiViewParams {
             // development photographs of cup, shaker, scissors: mean AUC
             // 0.649 with one, 0.582 with three).
             components: 1,
+            choose_from: Vec::new(),
+            cv_folds: 3,
             augment: AugmentParams::default(),
             latent_rounds: 2,
             min_iou: 0.6,
@@ -59,6 +67,16 @@ impl MultiViewParams {
         if self.components == 0 {
             return Err(TrainError::NoData(
                 "invalid setting: components must be >= 1".into(),
+            ));
+        }
+        if self.choose_from.contains(&0) {
+            return Err(TrainError::NoData(
+                "invalid setting: every number of components to choose from must be >= 1".into(),
+            ));
+        }
+        if self.choose_from.len() > 1 && !(2..=10).contains(&self.cv_folds) {
+            return Err(TrainError::NoData(
+                "invalid setting: cv_folds must be in 2..10".into(),
             ));
         }
         if !(0.3..=0.95).contains(&self.min_iou) {
@@ -84,6 +102,8 @@ pub struct MultiViewReport {
     pub imputation: Vec<ImputeRound>,
     /// Seconds making the view photographs and their pyramids.
     pub augment_seconds: f64,
+    /// The cross-validation that chose the number of components, if one did.
+    pub components_cv: Option<ComponentsCv>,
     /// Every round's SVM report (the last one is the model's).
     pub rounds: Vec<TrainReport>,
 }
@@ -261,6 +281,18 @@ pub fn train_sources(
 ) -> Result<(Model, MultiViewReport), TrainError> {
     mv.validate()?;
     let mut report = MultiViewReport::default();
+    let chosen;
+    let mv = if mv.choose_from.len() > 1 && !src.views.is_empty() {
+        let cv = choose_components(label, &src, cache, params, mv, progress)?;
+        chosen = MultiViewParams {
+            components: cv.chosen,
+            ..mv.clone()
+        };
+        report.components_cv = Some(cv);
+        &chosen
+    } else {
+        mv
+    };
     let ours = |s: &Sample| s.annotation.as_ref().is_some_and(|a| a.label == label);
     // Components of the masked photographs come first.
     let offset = src
@@ -341,6 +373,7 @@ pub fn train_sources(
             serde_json::json!({
                 "params": mv,
                 "components": report.components,
+                "components_cv": report.components_cv,
                 "view_positives": report.view_positives,
                 "view_negatives": report.view_negatives,
                 "mean_hidden": report.mean_hidden,
