@@ -6,7 +6,7 @@
 
 use super::*;
 use crate::data::bop::Bop;
-use crate::eval::bop_pose::{run, select, summarize, table, Outcome, Row, Selection};
+use crate::eval::bop_pose::{run, select, summarize, table, Cut, Outcome, Row, Selection};
 
 #[derive(clap::Args)]
 pub(crate) struct PoseEvalArgs {
@@ -42,7 +42,11 @@ pub(crate) struct PoseEvalArgs {
     /// box diagonal).
     #[arg(long)]
     pub(crate) prior_from_start: bool,
-    /// Write every outcome and summary as JSON here.
+    /// Only the rows whose names start with these (comma-separated:
+    /// `occluded`, `nearly`, `border`, `cropped`, `large`).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) rows: Vec<String>,
+    /// Write every outcome (with its answered pose) and summary as JSON here.
     #[arg(long)]
     pub(crate) report: Option<PathBuf>,
 }
@@ -80,6 +84,8 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         start_degrees,
         start_mm,
         prior_from_start: args.prior_from_start,
+        cut: Cut::Any,
+        min_diagonal: None,
     };
     let mut rows = vec![row("occluded, 5 deg / 10 mm starts", (lo, hi), 5.0, 10.0)];
     if let Some(text) = &args.start {
@@ -104,6 +110,18 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         rows.push(row("occluded, 2.5 deg / 5 mm starts", (lo, hi), 2.5, 5.0));
         rows.push(row("occluded, 10 deg / 20 mm starts", (lo, hi), 10.0, 20.0));
     }
+    if args.start.is_none() && !args.main_only {
+        rows.extend(border_rows(&row("", (lo, hi), 5.0, 10.0)));
+    }
+    if !args.rows.is_empty() {
+        rows.retain(|r| args.rows.iter().any(|k| r.name.starts_with(k.as_str())));
+        if rows.is_empty() {
+            return Err(Failure::input(format!(
+                "--rows {:?}: no row starts so (rows: occluded, nearly, border, cropped, large)",
+                args.rows
+            )));
+        }
+    }
     let mut report = Vec::new();
     for (ri, r) in rows.iter().enumerate() {
         let cases = select(&bop, r, &sel);
@@ -111,7 +129,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         let outcomes: Vec<Outcome> =
             run(&bop, r, &cases, &meshes, || pb.inc(1)).map_err(Failure::input)?;
         pb.finish_and_clear();
-        if ri == 0 {
+        if ri == 0 || r.cut != Cut::Any || r.min_diagonal.is_some() {
             for &obj in &objects {
                 println!("{}", table(&format!("obj {obj}"), &outcomes, Some(obj)));
             }
@@ -134,4 +152,32 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         std::fs::write(p, text).map_err(|e| Failure::io(format!("{}: {e}", p.display())))?;
     }
     Ok(())
+}
+
+/// The rows of objects cut by the image's border and of large objects,
+/// from `base`'s starts and settings: photographed at the border (any
+/// visibility of 0.3 and more: few are), development photographs cropped
+/// so that 10-50% of a mostly visible object is cut away, and objects
+/// whose full extent's diagonal is 200 pixels or more (`base`'s
+/// visibility range).
+fn border_rows(base: &Row) -> Vec<Row> {
+    vec![
+        Row {
+            name: "border, photographed (visib >= 0.3)".into(),
+            visib: (0.3, 1.0),
+            cut: Cut::Border,
+            ..base.clone()
+        },
+        Row {
+            name: "cropped: 10-50% cut by the border (visib >= 0.6)".into(),
+            visib: (0.6, 1.0),
+            cut: Cut::Cropped(0.1, 0.5),
+            ..base.clone()
+        },
+        Row {
+            name: "large: diagonal >= 200 px".into(),
+            min_diagonal: Some(200.0),
+            ..base.clone()
+        },
+    ]
 }

@@ -27,6 +27,8 @@ use crate::pose::api::{
 };
 use crate::pose::geometry::nearest_rotation;
 use crate::pose::{Intrinsics, Mesh, Pose, PoseError};
+use crate::vision::image::ColorImage;
+use crate::vision::mask::Mask;
 use crate::vision::rng::SplitMix64;
 
 /// A row of the benchmark: which instances and how far the starts are.
@@ -41,6 +43,84 @@ pub struct Row {
     /// the row's degrees and mm), as a client that knows it would; else
     /// the service's default.
     pub prior_from_start: bool,
+    /// Which instances of the visibility range: all, those whose full
+    /// extent touches the image's border, or cropped photographs.
+    #[serde(default)]
+    pub cut: Cut,
+    /// Only instances whose full extent's diagonal is at least this many
+    /// pixels (large and near objects).
+    #[serde(default)]
+    pub min_diagonal: Option<f64>,
+}
+
+/// How a row's instances meet the image's border.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cut {
+    /// Every instance as photographed.
+    #[default]
+    Any,
+    /// Instances whose full extent (`bbox_obj`) reaches the border.
+    Border,
+    /// The photograph cropped (its mask with it, the camera's principal
+    /// point shifted) so that a seeded share in `[lo, hi]` of the
+    /// instance's full-extent box is cut away from a seeded side.
+    Cropped(f64, f64),
+}
+
+/// Whether a full-extent box `(x, y, w, h)` reaches the border of a
+/// `width x height` image (within a pixel).
+pub fn touches_border(b: [f64; 4], width: usize, height: usize) -> bool {
+    b[0] <= 1.0
+        || b[1] <= 1.0
+        || b[0] + b[2] >= width as f64 - 1.0
+        || b[1] + b[3] >= height as f64 - 1.0
+}
+
+/// The crop `(x0, y0, x1, y1)` of a `width x height` photograph that cuts
+/// `share` of the box `b` away from `side` (0 left, 1 right, 2 top, 3
+/// bottom).
+pub fn crop_cutting(
+    b: [f64; 4],
+    share: f64,
+    side: usize,
+    width: usize,
+    height: usize,
+) -> (usize, usize, usize, usize) {
+    let (w, h) = (width as f64, height as f64);
+    let clampx = |v: f64| v.round().clamp(0.0, w) as usize;
+    let clampy = |v: f64| v.round().clamp(0.0, h) as usize;
+    match side {
+        0 => (clampx(b[0] + share * b[2]), 0, width, height),
+        1 => (0, 0, clampx(b[0] + (1.0 - share) * b[2]), height),
+        2 => (0, clampy(b[1] + share * b[3]), width, height),
+        _ => (0, 0, width, clampy(b[1] + (1.0 - share) * b[3])),
+    }
+}
+
+/// The part `(x0, y0, x1, y1)` of an image.
+fn crop_image(img: &ColorImage, c: (usize, usize, usize, usize)) -> Option<ColorImage> {
+    let (x0, y0, x1, y1) = c;
+    let w = img.width();
+    let mut data = Vec::with_capacity((x1 - x0) * (y1 - y0) * 3);
+    for y in y0..y1 {
+        data.extend_from_slice(&img.data()[(y * w + x0) * 3..(y * w + x1) * 3]);
+    }
+    ColorImage::new(x1 - x0, y1 - y0, data).ok()
+}
+
+/// The part `(x0, y0, x1, y1)` of a mask.
+fn crop_mask(m: &Mask, c: (usize, usize, usize, usize)) -> Mask {
+    let (x0, y0, x1, y1) = c;
+    let mut out = Mask::new(x1 - x0, y1 - y0);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            if m.get(x, y) {
+                out.set(x - x0, y - y0, true);
+            }
+        }
+    }
+    out
 }
 
 /// Settings of the selection.
@@ -240,8 +320,29 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
             .images
             .iter()
             .flat_map(|im| im.instances.iter().map(move |i| (im, i)))
-            .filter(|(_, i)| {
+            .filter(|(im, i)| {
+                // The photograph's size from its header (only where asked).
+                let size = || {
+                    image::image_dimensions(bop.rgb_path(im))
+                        .map(|(w, h)| (w as usize, h as usize))
+                        .ok()
+                };
+                let border = row.cut != Cut::Any
+                    && i.bbox_obj
+                        .zip(size())
+                        .is_some_and(|(b, (w, h))| touches_border(b, w, h));
+                let cut_ok = match row.cut {
+                    Cut::Any => true,
+                    Cut::Border => border,
+                    // Cropping needs the box, whole in the photograph.
+                    Cut::Cropped(..) => i.bbox_obj.is_some() && !border,
+                };
+                let size_ok = row
+                    .min_diagonal
+                    .is_none_or(|d| i.bbox_obj.is_some_and(|b| b[2].hypot(b[3]) >= d));
                 i.obj_id == obj
+                    && cut_ok
+                    && size_ok
                     && (row.visib.0..=row.visib.1).contains(&i.visib_fract)
                     && i.oracle_visib_fract
                         .is_none_or(|o| (o - i.visib_fract).abs() <= sel.max_oracle_gap)
@@ -287,18 +388,37 @@ pub fn run(
     let mut out = Vec::new();
     for case in cases {
         let (im, inst) = (case.image, case.instance);
-        let img = load_image(&bop.rgb_path(im))?;
+        let mut img = load_image(&bop.rgb_path(im))?;
         let mask_path = bop.mask_visib_path(im, inst.k);
-        let mask = image::open(&mask_path)
+        let mut mask = image::open(&mask_path)
             .map(|m| mask_from_image(&m))
             .map_err(|e| crate::data::DatasetError::Image {
                 path: mask_path.clone(),
                 msg: e.to_string(),
             })?;
+        let mut intrinsics = intrinsics(im);
+        if let (Cut::Cropped(lo, hi), Some(b)) = (row.cut, inst.bbox_obj) {
+            let mut rng = SplitMix64::new(
+                0xC0FFEE
+                    ^ (u64::from(inst.obj_id) << 40)
+                    ^ (u64::from(im.id) << 16)
+                    ^ inst.k as u64,
+            );
+            let share = rng.range_f64(lo, hi);
+            let side = rng.range_usize(0, 4);
+            let c = crop_cutting(b, share, side, img.width(), img.height());
+            if c.2 > c.0 + 16 && c.3 > c.1 + 16 {
+                if let Some(cropped) = crop_image(&img, c) {
+                    img = cropped;
+                    mask = crop_mask(&mask, c);
+                    intrinsics.cx -= c.0 as f64;
+                    intrinsics.cy -= c.1 as f64;
+                }
+            }
+        }
         let info = bop.models.get(&inst.obj_id);
         let diameter = info.map_or(f64::INFINITY, |m| m.diameter);
         let symmetries = info.map_or(&[][..], |m| &m.symmetries_discrete[..]);
-        let intrinsics = intrinsics(im);
         let (_, t0, a0) = errors(&case.start, &case.truth, symmetries);
         let points = meshes
             .get(&inst.obj_id)

@@ -24,7 +24,7 @@ use nalgebra::{Matrix6, Vector2, Vector3, Vector6};
 use rayon::prelude::*;
 
 use super::distance::MaskDistance;
-use super::edges::{EdgeModel, EdgeSample};
+use super::edges::{DepthBuffer, EdgeModel, EdgeSample};
 use super::geometry::{Intrinsics, Pose};
 pub use super::params::{IrlsParams, START_SIGMA_DIAGONAL};
 use super::region::{outward, ColourModel};
@@ -71,6 +71,17 @@ const REGION_TEMPER: f64 = 0.5;
 /// Width (pixels) of the band around the start pose's projection whose
 /// colours are the background's.
 const REGION_BAND_PX: usize = 20;
+
+/// Edge samples per outline at most: a larger outline is sampled more
+/// sparsely, so that neither the time nor the data's weight against the
+/// start prior grows with the object's size in the image (the LM-O
+/// development objects: median 125 samples, three quarters under 143).
+pub const MAX_SAMPLES: usize = 160;
+
+/// Samples, matches and colour steps this near the image's border (pixels)
+/// are not evidence: a model outline on or past the border shows nothing,
+/// and the border itself is no edge of the object.
+const BORDER_PX: f64 = 0.0;
 
 /// The residual (pixels along the normal from the projected model point to
 /// its match) and its derivative with respect to the twist at `pose`.
@@ -224,6 +235,28 @@ impl Context<'_> {
         sum / corners.len() as f64
     }
 
+    /// The visible model edge samples at `pose` at most [`MAX_SAMPLES`]
+    /// (evenly thinned), none within [`BORDER_PX`] of the image's border.
+    fn outline(&self, pose: &Pose, depth: &DepthBuffer) -> Result<Vec<EdgeSample>, PoseError> {
+        let all: Vec<EdgeSample> = self
+            .edges
+            .samples(self.k, pose, depth, self.params.sample_step, &self.deadline)?
+            .into_iter()
+            .filter(|s| self.inside(&s.pixel))
+            .collect();
+        let stride = all.len().div_ceil(MAX_SAMPLES).max(1);
+        Ok(all.into_iter().step_by(stride).collect())
+    }
+
+    /// Whether a pixel lies at least [`BORDER_PX`] inside the image.
+    fn inside(&self, p: &Vector2<f64>) -> bool {
+        let (w, h) = (self.grads.width as f64, self.grads.height as f64);
+        p.x >= BORDER_PX
+            && p.y >= BORDER_PX
+            && p.x <= w - 1.0 - BORDER_PX
+            && p.y <= h - 1.0 - BORDER_PX
+    }
+
     /// How well the model's edges at `pose` agree with the image: over
     /// the visible model edge samples in the mask (grown by the margin),
     /// the mean of `min(d, EVIDENCE_CUT_PX)^2` where `d` is the distance
@@ -246,8 +279,7 @@ impl Context<'_> {
         let (mut sum, mut n, mut close) = (0.0, 0usize, 0usize);
         let (mut outline, mut outline_close) = (0usize, 0usize);
         for s in self
-            .edges
-            .samples(self.k, pose, &depth, params.sample_step, &self.deadline)?
+            .outline(pose, &depth)?
             .iter()
             .filter(|s| in_mask(&s.pixel))
         {
@@ -269,7 +301,10 @@ impl Context<'_> {
             let d = search(g, s, &near).and_then(|(found, m)| {
                 found[..m]
                     .iter()
-                    .filter(|&&o| in_mask(&(s.pixel + s.normal * o)))
+                    .filter(|&&o| {
+                        let target = s.pixel + s.normal * o;
+                        in_mask(&target) && self.inside(&target)
+                    })
                     .map(|o| o.abs())
                     .min_by(f64::total_cmp)
             });
@@ -321,9 +356,7 @@ impl Context<'_> {
             ..*params
         };
         let grow = growth(params, range);
-        let samples = self
-            .edges
-            .samples(k, &t.pose, &depth, params.sample_step, &self.deadline)?;
+        let samples = self.outline(&t.pose, &depth)?;
         let in_mask =
             |p: &Vector2<f64>, r: usize| self.mask.as_ref().is_none_or(|m| m.within(p, r));
         // The outline's place along each outline sample's outward normal
@@ -343,11 +376,14 @@ impl Context<'_> {
                     let n = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX)?;
                     let st = colour.step(self.img, &s.pixel, &n, region_range, REGION_TEMPER)?;
                     let target = s.pixel + n * st.offset;
-                    in_mask(&target, params.mask_margin_px).then_some((
-                        EdgeSample { normal: n, ..*s },
-                        st.offset,
-                        st.variance,
-                    ))
+                    // The background side must be in the image: past the
+                    // border the colours say nothing, and the step would
+                    // pull the outline out to it.
+                    let beyond = target + n * REGION_PROBE_PX;
+                    (in_mask(&target, params.mask_margin_px)
+                        && self.inside(&target)
+                        && self.inside(&beyond))
+                    .then_some((EdgeSample { normal: n, ..*s }, st.offset, st.variance))
                 })
                 .collect(),
             _ => Vec::new(),
@@ -360,6 +396,9 @@ impl Context<'_> {
                 let mut count = 0;
                 for &offset in &found[..n] {
                     let target = s.pixel + s.normal * offset;
+                    if !self.inside(&target) {
+                        continue;
+                    }
                     if let Some(m) = &self.mask {
                         if !m.within(&s.pixel, grow) || !m.within(&target, params.mask_margin_px) {
                             continue;
