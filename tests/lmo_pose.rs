@@ -33,6 +33,7 @@ fn or_irls_improves_the_start_on_real_photographs() {
         prior_from_start: false,
         cut: Cut::Any,
         min_diagonal: None,
+        max_iterations: None,
     };
     let sel = Selection {
         objects,
@@ -84,6 +85,7 @@ fn or_irls_improves_the_start_of_objects_cut_by_the_border() {
         prior_from_start: false,
         cut: Cut::Cropped(0.1, 0.5),
         min_diagonal: None,
+        max_iterations: None,
     };
     let sel = Selection {
         objects,

@@ -42,6 +42,10 @@ pub(crate) struct PoseEvalArgs {
     /// box diagonal).
     #[arg(long)]
     pub(crate) prior_from_start: bool,
+    /// The requests' `max_iterations` (outer iterations per start; default:
+    /// the service's).
+    #[arg(long)]
+    pub(crate) max_iterations: Option<usize>,
     /// Only the rows whose names start with these (comma-separated:
     /// `occluded`, `nearly`, `border`, `cropped`, `large`).
     #[arg(long, value_delimiter = ',')]
@@ -86,6 +90,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         prior_from_start: args.prior_from_start,
         cut: Cut::Any,
         min_diagonal: None,
+        max_iterations: args.max_iterations,
     };
     let mut rows = vec![row("occluded, 5 deg / 10 mm starts", (lo, hi), 5.0, 10.0)];
     if let Some(text) = &args.start {

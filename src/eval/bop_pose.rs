@@ -51,6 +51,9 @@ pub struct Row {
     /// pixels (large and near objects).
     #[serde(default)]
     pub min_diagonal: Option<f64>,
+    /// The requests' `max_iterations` (default: the service's).
+    #[serde(default)]
+    pub max_iterations: Option<usize>,
 }
 
 /// How a row's instances meet the image's border.
@@ -471,7 +474,7 @@ pub fn run(
                 label: None,
                 model: None,
                 mask: Some(source),
-                max_iterations: None,
+                max_iterations: row.max_iterations,
                 start_uncertainty: row.prior_from_start.then_some(StartUncertainty {
                     degrees: Some(row.start_degrees),
                     translation: Some(row.start_mm),

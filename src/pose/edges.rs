@@ -33,6 +33,9 @@ pub struct EdgeModel {
     vertices: Vec<Vector3<f64>>,
     triangles: Vec<[u32; 3]>,
     normals: Vec<Vector3<f64>>,
+    /// Each face's `normal . vertex` (any of its vertices): its plane's
+    /// offset, for [`EdgeModel::facing`].
+    offsets: Vec<f64>,
     edges: Vec<Edge>,
     corners: [Vector3<f64>; 8],
     /// Closed, consistently wound and facing outwards (positive volume):
@@ -88,6 +91,30 @@ pub fn rasterize(
     cull_back: bool,
     deadline: &Deadline,
 ) -> Result<DepthBuffer, PoseError> {
+    let cull = if cull_back { Cull::Winding } else { Cull::None };
+    rasterize_culled(vertices, triangles, k, pose, width, height, cull, deadline)
+}
+
+/// Which triangles [`rasterize_culled`] skips.
+enum Cull<'a> {
+    None,
+    /// Those whose winding faces away from the camera.
+    Winding,
+    /// Those not marked (the faces towards the camera, computed before).
+    Facing(&'a [bool]),
+}
+
+#[allow(clippy::too_many_arguments)]
+fn rasterize_culled(
+    vertices: &[Vector3<f64>],
+    triangles: &[[u32; 3]],
+    k: &Intrinsics,
+    pose: &Pose,
+    width: usize,
+    height: usize,
+    cull: Cull<'_>,
+    deadline: &Deadline,
+) -> Result<DepthBuffer, PoseError> {
     let cam: Vec<Vector3<f64>> = vertices.iter().map(|v| pose.transform(v)).collect();
     // Each vertex projected once (the image of one in front of the camera;
     // only triangles wholly in front are drawn).
@@ -115,6 +142,11 @@ pub fn rasterize(
         if fi % DEADLINE_STRIDE == 0 && deadline.passed() {
             return Err(PoseError::DeadlineExceeded);
         }
+        if let Cull::Facing(front) = cull {
+            if !front[fi] {
+                continue;
+            }
+        }
         let (Some(s0), Some(s1), Some(s2)) = (
             proj[t[0] as usize],
             proj[t[1] as usize],
@@ -123,7 +155,7 @@ pub fn rasterize(
             continue;
         };
         let p = t.map(|i| cam[i as usize]);
-        if cull_back && (p[1] - p[0]).cross(&(p[2] - p[0])).dot(&p[0]) >= 0.0 {
+        if matches!(cull, Cull::Winding) && (p[1] - p[0]).cross(&(p[2] - p[0])).dot(&p[0]) >= 0.0 {
             continue;
         }
         let s = [s0, s1, s2];
@@ -310,6 +342,11 @@ impl EdgeModel {
             corners,
             vertices: mesh.vertices.clone(),
             triangles: mesh.triangles.clone(),
+            offsets: normals
+                .iter()
+                .zip(&mesh.triangles)
+                .map(|(n, t)| n.dot(&mesh.vertices[t[0] as usize]))
+                .collect(),
             normals,
             edges,
         }
@@ -324,14 +361,21 @@ impl EdgeModel {
         height: usize,
         deadline: &Deadline,
     ) -> Result<DepthBuffer, PoseError> {
-        rasterize(
+        let front;
+        let cull = if self.solid {
+            front = self.facing(pose);
+            Cull::Facing(&front)
+        } else {
+            Cull::None
+        };
+        rasterize_culled(
             &self.vertices,
             &self.triangles,
             k,
             pose,
             width,
             height,
-            self.solid,
+            cull,
             deadline,
         )
     }
@@ -353,12 +397,17 @@ impl EdgeModel {
         self.vertices.iter().map(|v| v.norm()).fold(0.0, f64::max)
     }
 
-    /// Whether a face looks towards the camera at `pose`.
-    fn front(&self, pose: &Pose, f: u32) -> bool {
-        let t = self.triangles[f as usize];
-        let c = pose.transform(&self.vertices[t[0] as usize]);
-        let n = pose.rotation * self.normals[f as usize];
-        n.dot(&c) < 0.0
+    /// Whether each face looks towards the camera at `pose`: its normal
+    /// points away from the camera's centre `o` in the object's frame,
+    /// `n . (v - o) < 0` for a vertex `v` of the face (the same as the
+    /// camera frame's `(R n) . (R v + t) < 0`, at a dot product a face).
+    fn facing(&self, pose: &Pose) -> Vec<bool> {
+        let o = -(pose.rotation.transpose() * pose.translation);
+        self.normals
+            .iter()
+            .zip(&self.offsets)
+            .map(|(n, &d)| d < n.dot(&o))
+            .collect()
     }
 
     /// Samples every `step` pixels along the visible projected crease and
@@ -378,6 +427,7 @@ impl EdgeModel {
     ) -> Result<Vec<EdgeSample>, PoseError> {
         let mut out = Vec::new();
         let (w, h) = (depth.width as f64, depth.height as f64);
+        let front = self.facing(pose);
         // Distance (pixels) from the start of the next edge to its first
         // sample.
         let mut next = 0.5 * step;
@@ -388,7 +438,7 @@ impl EdgeModel {
             let use_it = if e.boundary {
                 true
             } else {
-                let (f0, f1) = (self.front(pose, e.faces[0]), self.front(pose, e.faces[1]));
+                let (f0, f1) = (front[e.faces[0] as usize], front[e.faces[1] as usize]);
                 // Silhouettes, and creases on the visible side.
                 f0 != f1 || (e.crease && f0)
             };
