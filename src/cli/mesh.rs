@@ -679,10 +679,7 @@ fn train_from_views(
     let (model, mut report) =
         train_sources(&object.name, src, cache, params, &mv, pb).map_err(Failure::input)?;
     // Each render's direction and rotation, by its id.
-    let (lo, hi) = object.mesh.vertices.iter().fold(
-        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
-        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
-    );
+    let (lo, hi) = object.mesh.bounds();
     let centre = (lo + hi) / 2.0;
     let index: std::collections::HashMap<&str, usize> = renders
         .iter()

@@ -323,6 +323,12 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
             .images
             .iter()
             .flat_map(|im| im.instances.iter().map(move |i| (im, i)))
+            .filter(|(_, i)| {
+                i.obj_id == obj
+                    && (row.visib.0..=row.visib.1).contains(&i.visib_fract)
+                    && i.oracle_visib_fract
+                        .is_none_or(|o| (o - i.visib_fract).abs() <= sel.max_oracle_gap)
+            })
             .filter(|(im, i)| {
                 // The photograph's size from its header (only where asked).
                 let size = || {
@@ -343,12 +349,7 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
                 let size_ok = row
                     .min_diagonal
                     .is_none_or(|d| i.bbox_obj.is_some_and(|b| b[2].hypot(b[3]) >= d));
-                i.obj_id == obj
-                    && cut_ok
-                    && size_ok
-                    && (row.visib.0..=row.visib.1).contains(&i.visib_fract)
-                    && i.oracle_visib_fract
-                        .is_none_or(|o| (o - i.visib_fract).abs() <= sel.max_oracle_gap)
+                cut_ok && size_ok
             })
             .collect();
         // A seeded shuffle (Fisher-Yates).

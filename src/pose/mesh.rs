@@ -263,13 +263,19 @@ impl Mesh {
 
     /// The largest distance between two vertices along an axis.
     pub fn extent(&self) -> f64 {
-        let mut lo = Vector3::repeat(f64::INFINITY);
-        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-        for v in &self.vertices {
-            lo = lo.inf(v);
-            hi = hi.sup(v);
-        }
+        let (lo, hi) = self.bounds();
         (hi - lo).max()
+    }
+
+    /// The corners `(lo, hi)` of the vertices' axis-aligned box.
+    pub fn bounds(&self) -> (Vector3<f64>, Vector3<f64>) {
+        self.vertices.iter().fold(
+            (
+                Vector3::repeat(f64::INFINITY),
+                Vector3::repeat(f64::NEG_INFINITY),
+            ),
+            |(lo, hi), v| (lo.inf(v), hi.sup(v)),
+        )
     }
 }
 

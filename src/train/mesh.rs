@@ -370,10 +370,7 @@ fn mesh_occluder(
     let Some((bx0, by0, bx1, by1)) = full.tight_box() else {
         return Ok(None);
     };
-    let (lo, hi) = occ.mesh.vertices.iter().fold(
-        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
-        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
-    );
+    let (lo, hi) = occ.mesh.bounds();
     let centre = (lo + hi) / 2.0;
     let diagonal = (hi - lo).norm().max(1e-9);
     let dir = direction(
@@ -448,10 +445,7 @@ pub fn render_set_with(
         cy: h as f64 / 2.0,
     };
     // The mesh's box centre and its diagonal.
-    let (lo, hi) = mesh.vertices.iter().fold(
-        (Vector3::repeat(f64::MAX), Vector3::repeat(f64::MIN)),
-        |(lo, hi), v| (lo.inf(v), hi.sup(v)),
-    );
+    let (lo, hi) = mesh.bounds();
     let centre = (lo + hi) / 2.0;
     let diagonal = (hi - lo).norm().max(1e-9);
     let mut master = SplitMix64::new(params.seed);
