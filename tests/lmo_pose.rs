@@ -42,6 +42,7 @@ fn or_irls_improves_the_start(name: &str, visib: (f64, f64), cut: Cut) {
         per_object: 4,
         max_oracle_gap: 0.1,
         seed: 7,
+        starts: 1,
     };
     let cases = select(&bop, &row, &sel);
     assert!(cases.len() >= 12, "{} instances", cases.len());

@@ -28,6 +28,10 @@ pub(crate) struct PoseEvalArgs {
     pub(crate) max_oracle_gap: f64,
     #[arg(long, default_value_t = 7)]
     pub(crate) seed: u64,
+    /// Starts per instance, each about its own random axis (the first is
+    /// the one of a single start; more narrow the figures' noise).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=100))]
+    pub(crate) starts: u64,
     /// Only the main row (occluded, 5 degree / 10 mm starts).
     #[arg(long)]
     pub(crate) main_only: bool,
@@ -47,7 +51,7 @@ pub(crate) struct PoseEvalArgs {
     #[arg(long)]
     pub(crate) max_iterations: Option<usize>,
     /// Only the rows whose names start with these (comma-separated:
-    /// `occluded`, `nearly`, `border`, `cropped`, `large`).
+    /// `occluded`, `nearly`, `border`, `cropped`, `zoomed`, `large`).
     #[arg(long, value_delimiter = ',')]
     pub(crate) rows: Vec<String>,
     /// Write every outcome (with its answered pose) and summary as JSON here.
@@ -81,6 +85,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         per_object: args.per_object,
         max_oracle_gap: args.max_oracle_gap,
         seed: args.seed,
+        starts: args.starts as usize,
     };
     let row = |name: &str, visib: (f64, f64), start_degrees: f64, start_mm: f64| Row {
         name: name.to_string(),
@@ -122,7 +127,7 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         rows.retain(|r| args.rows.iter().any(|k| r.name.starts_with(k.as_str())));
         if rows.is_empty() {
             return Err(Failure::input(format!(
-                "--rows {:?}: no row starts so (rows: occluded, nearly, border, cropped, large)",
+                "--rows {:?}: no row starts so (rows: occluded, nearly, border, cropped, zoomed, large)",
                 args.rows
             )));
         }
@@ -162,9 +167,11 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
 /// The rows of objects cut by the image's border and of large objects,
 /// from `base`'s starts and settings: photographed at the border (any
 /// visibility of 0.3 and more: few are), development photographs cropped
-/// so that 10-50% of a mostly visible object is cut away, and objects
-/// whose full extent's diagonal is 200 pixels or more (`base`'s
-/// visibility range).
+/// so that 10-50% of a mostly visible object is cut away, development
+/// photographs enlarged 2.5 times about the object (as a longer lens sees
+/// it: large in the image, `base`'s visibility range) and objects whose
+/// full extent's diagonal is 200 pixels or more (`base`'s visibility
+/// range).
 fn border_rows(base: &Row) -> Vec<Row> {
     vec![
         Row {
@@ -177,6 +184,11 @@ fn border_rows(base: &Row) -> Vec<Row> {
             name: "cropped: 10-50% cut by the border (visib >= 0.6)".into(),
             visib: (0.6, 1.0),
             cut: Cut::Cropped(0.1, 0.5),
+            ..base.clone()
+        },
+        Row {
+            name: "zoomed: enlarged 2.5x about the object".into(),
+            cut: Cut::Zoomed(2.5),
             ..base.clone()
         },
         Row {

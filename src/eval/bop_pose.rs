@@ -69,6 +69,12 @@ pub enum Cut {
     /// point shifted) so that a seeded share in `[lo, hi]` of the
     /// instance's full-extent box is cut away from a seeded side.
     Cropped(f64, f64),
+    /// The photograph enlarged this many times about the instance's
+    /// full-extent box (bilinear; the mask by its nearest pixel), cut to
+    /// its own size and the camera's focal lengths and principal point
+    /// with it: the object as a longer lens would see it, near and large
+    /// in the image.
+    Zoomed(f64),
 }
 
 /// Whether a full-extent box `(x, y, w, h)` reaches the border of a
@@ -126,6 +132,79 @@ fn crop_mask(m: &Mask, c: (usize, usize, usize, usize)) -> Mask {
     out
 }
 
+/// The window of a `width x height` photograph that, enlarged `f` times,
+/// fills the photograph: centred on `(px, py)` where it can be, inside the
+/// photograph. Returns its centre.
+pub fn zoom_centre(px: f64, py: f64, f: f64, width: usize, height: usize) -> (f64, f64) {
+    let clamp = |v: f64, size: usize| {
+        let half = size as f64 / (2.0 * f);
+        // Pixel centres span [-0.5, size - 0.5].
+        v.clamp(half - 0.5, size as f64 - half - 0.5)
+    };
+    (clamp(px, width), clamp(py, height))
+}
+
+/// `img` enlarged `f` times about `centre` (which lands on the image's
+/// centre), bilinear, the same size.
+fn zoom_image(img: &ColorImage, f: f64, centre: (f64, f64)) -> Option<ColorImage> {
+    let (w, h) = (img.width(), img.height());
+    let (mid_x, mid_y) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let src = img.data();
+    let mut data = Vec::with_capacity(w * h * 3);
+    for y in 0..h {
+        let sy = ((y as f64 - mid_y) / f + centre.1).clamp(0.0, h as f64 - 1.0);
+        let (y0, ty) = (sy.floor() as usize, (sy - sy.floor()) as f32);
+        let y1 = (y0 + 1).min(h - 1);
+        for x in 0..w {
+            let sx = ((x as f64 - mid_x) / f + centre.0).clamp(0.0, w as f64 - 1.0);
+            let (x0, tx) = (sx.floor() as usize, (sx - sx.floor()) as f32);
+            let x1 = (x0 + 1).min(w - 1);
+            for c in 0..3 {
+                let at = |xx: usize, yy: usize| src[(yy * w + xx) * 3 + c];
+                let top = at(x0, y0) * (1.0 - tx) + at(x1, y0) * tx;
+                let bottom = at(x0, y1) * (1.0 - tx) + at(x1, y1) * tx;
+                data.push(top * (1.0 - ty) + bottom * ty);
+            }
+        }
+    }
+    ColorImage::new(w, h, data).ok()
+}
+
+/// The camera of a `width x height` image enlarged as [`zoom_image`]
+/// does: `u' = f (u - centre) + middle`.
+fn zoom_intrinsics(
+    k: &Intrinsics,
+    f: f64,
+    centre: (f64, f64),
+    width: usize,
+    height: usize,
+) -> Intrinsics {
+    let (mid_x, mid_y) = ((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0);
+    Intrinsics {
+        fx: k.fx * f,
+        fy: k.fy * f,
+        cx: f * (k.cx - centre.0) + mid_x,
+        cy: f * (k.cy - centre.1) + mid_y,
+    }
+}
+
+/// `m` enlarged as [`zoom_image`] does, each pixel from its nearest.
+fn zoom_mask(m: &Mask, f: f64, centre: (f64, f64)) -> Mask {
+    let (w, h) = (m.width, m.height);
+    let (mid_x, mid_y) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let mut out = Mask::new(w, h);
+    for y in 0..h {
+        let sy = ((y as f64 - mid_y) / f + centre.1).round();
+        for x in 0..w {
+            let sx = ((x as f64 - mid_x) / f + centre.0).round();
+            if sx >= 0.0 && sy >= 0.0 && m.get(sx as usize, sy as usize) {
+                out.set(x, y, true);
+            }
+        }
+    }
+    out
+}
+
 /// Settings of the selection.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Selection {
@@ -135,6 +214,9 @@ pub struct Selection {
     /// occluders are annotated).
     pub max_oracle_gap: f64,
     pub seed: u64,
+    /// Starts per instance (the first as with one; more narrow the
+    /// figures' noise).
+    pub starts: usize,
 }
 
 /// One instance chosen for a row.
@@ -144,6 +226,8 @@ pub struct Case<'a> {
     pub instance: &'a Instance,
     pub truth: Pose,
     pub start: Pose,
+    /// Which of the instance's starts.
+    pub start_index: usize,
 }
 
 /// A method's answer on one case.
@@ -152,6 +236,8 @@ pub struct Outcome {
     pub obj_id: u32,
     pub im_id: u32,
     pub k: usize,
+    /// Which of the instance's starts.
+    pub start_index: usize,
     pub visib_fract: f64,
     /// `initial`, `irls` or `or_irls`.
     pub method: &'static str,
@@ -345,6 +431,13 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
                     Cut::Border => border,
                     // Cropping needs the box, whole in the photograph.
                     Cut::Cropped(..) => i.bbox_obj.is_some() && !border,
+                    // The enlarged object must fit in the photograph.
+                    Cut::Zoomed(f) => {
+                        !border
+                            && i.bbox_obj.zip(size()).is_some_and(|(b, (w, h))| {
+                                b[2] * f <= w as f64 && b[3] * f <= h as f64
+                            })
+                    }
                 };
                 let size_ok = row
                     .min_diagonal
@@ -362,19 +455,22 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
             let Some(truth) = truth_pose(instance) else {
                 continue;
             };
-            let start = start_pose(
-                &truth,
-                sel.seed,
-                (obj, image.id, instance.k),
-                row.start_degrees,
-                row.start_mm,
-            );
-            out.push(Case {
-                image,
-                instance,
-                truth,
-                start,
-            });
+            for start_index in 0..sel.starts.max(1) {
+                let start = start_pose(
+                    &truth,
+                    sel.seed,
+                    (obj, image.id, instance.k + 1000 * start_index),
+                    row.start_degrees,
+                    row.start_mm,
+                );
+                out.push(Case {
+                    image,
+                    instance,
+                    truth,
+                    start,
+                    start_index,
+                });
+            }
         }
     }
     out
@@ -420,6 +516,20 @@ pub fn run(
                 }
             }
         }
+        if let (Cut::Zoomed(f), Some(b)) = (row.cut, inst.bbox_obj) {
+            let centre = zoom_centre(
+                b[0] + b[2] / 2.0 - 0.5,
+                b[1] + b[3] / 2.0 - 0.5,
+                f,
+                img.width(),
+                img.height(),
+            );
+            if let Some(zoomed) = zoom_image(&img, f, centre) {
+                mask = zoom_mask(&mask, f, centre);
+                intrinsics = zoom_intrinsics(&intrinsics, f, centre, img.width(), img.height());
+                img = zoomed;
+            }
+        }
         let info = bop.models.get(&inst.obj_id);
         let diameter = info.map_or(f64::INFINITY, |m| m.diameter);
         let symmetries = info.map_or(&[][..], |m| &m.symmetries_discrete[..]);
@@ -441,6 +551,7 @@ pub fn run(
                 obj_id: inst.obj_id,
                 im_id: im.id,
                 k: inst.k,
+                start_index: case.start_index,
                 visib_fract: inst.visib_fract,
                 method,
                 errors: e,
@@ -588,6 +699,51 @@ pub fn table(title: &str, outcomes: &[Outcome], obj: Option<u32>) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_enlarged_photograph_and_its_camera_agree() {
+        // A dark left half, a bright right half: the step at u = 19.5.
+        let (w, h) = (64, 48);
+        let data: Vec<f32> = (0..w * h)
+            .flat_map(|i| [if i % w < 20 { 0.0 } else { 200.0 }; 3])
+            .collect();
+        let img = ColorImage::new(w, h, data).unwrap();
+        let k = Intrinsics {
+            fx: 100.0,
+            fy: 100.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        // A point of the step's plane, seen at u = 19.5.
+        let p = Vector3::new((19.5 - k.cx) / k.fx, 0.1, 1.0);
+        let f = 2.5;
+        let centre = zoom_centre(22.0, 20.0, f, w, h);
+        // Clamped so that the window stays in the photograph.
+        assert!((centre.1 - (h as f64 / (2.0 * f) - 0.5)).abs() < 1e-9 || centre.1 == 20.0);
+        let zoomed = zoom_image(&img, f, centre).unwrap();
+        let kz = zoom_intrinsics(&k, f, centre, w, h);
+        let u = kz.project(&p).unwrap().x;
+        // The zoomed step (half way between the two levels) lies at u.
+        let row = 20;
+        let level = |x: usize| zoomed.get(x, row, 0);
+        let x = (0..w - 1)
+            .find(|&x| level(x) < 100.0 && level(x + 1) >= 100.0)
+            .unwrap();
+        let crossing = x as f64 + (100.0 - level(x) as f64) / (level(x + 1) - level(x)) as f64;
+        assert!((crossing - u).abs() < 0.1, "{crossing} {u}");
+        // The mask goes with it.
+        let mut m = Mask::new(w, h);
+        m.set(30, 20, true);
+        let mz = zoom_mask(&m, f, centre);
+        let q = kz.project(&Vector3::new(
+            (30.0 - k.cx) / k.fx,
+            (20.0 - k.cy) / k.fy,
+            1.0,
+        ));
+        let q = q.unwrap();
+        assert!(mz.get(q.x.round() as usize, q.y.round() as usize));
+        assert!(mz.area() >= 4 && mz.area() <= 9, "{}", mz.area());
+    }
 
     #[test]
     fn starts_are_exactly_as_far_as_asked_and_errors_see_symmetries() {

@@ -38,6 +38,8 @@ pub struct EdgeModel {
     offsets: Vec<f64>,
     edges: Vec<Edge>,
     corners: [Vector3<f64>; 8],
+    /// The largest distance of a vertex from the object's origin.
+    radius: f64,
     /// Closed, consistently wound and facing outwards (positive volume):
     /// then a face turned away from the camera is never seen, and the
     /// rasteriser skips it.
@@ -55,6 +57,11 @@ pub struct EdgeSample {
     pub normal: Vector2<f64>,
 }
 
+/// The widest (pixels) that a mesh's bounding sphere is drawn in the
+/// depth buffers of [`EdgeModel::depth`]: a larger object's buffers have
+/// cells of several pixels.
+pub const DEPTH_MAX_PX: f64 = 100.0;
+
 /// Per-pixel depth (camera z) of the nearest surface (infinity where none)
 /// and the triangle seen there, stored over the window of the image that
 /// the mesh's projection can reach (the rest is empty): filling a whole
@@ -64,7 +71,11 @@ pub struct DepthBuffer {
     /// The image's size.
     pub width: usize,
     pub height: usize,
-    /// The window: left, top, width, height (within the image).
+    /// Image pixels per cell of the buffers, each way (1: a cell a
+    /// pixel): a large object's buffers are coarser (see
+    /// [`DEPTH_MAX_PX`]).
+    scale: f64,
+    /// The window: left, top, width, height, in cells.
     window: (usize, usize, usize, usize),
     /// Inverse depth, 0 where no surface: the nearest surface is the
     /// largest, and no pixel pays a division.
@@ -92,7 +103,15 @@ pub fn rasterize(
     deadline: &Deadline,
 ) -> Result<DepthBuffer, PoseError> {
     let cull = if cull_back { Cull::Winding } else { Cull::None };
-    rasterize_culled(vertices, triangles, k, pose, width, height, cull, deadline)
+    rasterize_culled(
+        vertices,
+        triangles,
+        k,
+        pose,
+        (width, height, 1.0),
+        cull,
+        deadline,
+    )
 }
 
 /// Which triangles [`rasterize_culled`] skips.
@@ -105,16 +124,34 @@ enum Cull<'a> {
 }
 
 #[allow(clippy::too_many_arguments)]
+/// `image`: the image's width and height and the image pixels per cell
+/// of the buffers (at least 1): the triangles are drawn at the cells'
+/// centres, a camera whose pixels are that much larger.
 fn rasterize_culled(
     vertices: &[Vector3<f64>],
     triangles: &[[u32; 3]],
     k: &Intrinsics,
     pose: &Pose,
-    width: usize,
-    height: usize,
+    image: (usize, usize, f64),
     cull: Cull<'_>,
     deadline: &Deadline,
 ) -> Result<DepthBuffer, PoseError> {
+    let (image_width, image_height, scale) = (image.0, image.1, image.2.max(1.0));
+    let (width, height, k) = if scale > 1.0 {
+        (
+            (image_width as f64 / scale).ceil() as usize,
+            (image_height as f64 / scale).ceil() as usize,
+            // A cell covers image pixels [c s, (c + 1) s).
+            &Intrinsics {
+                fx: k.fx / scale,
+                fy: k.fy / scale,
+                cx: k.cx / scale,
+                cy: k.cy / scale,
+            },
+        )
+    } else {
+        (image_width, image_height, k)
+    };
     let cam: Vec<Vector3<f64>> = vertices.iter().map(|v| pose.transform(v)).collect();
     // Each vertex projected once (the image of one in front of the camera;
     // only triangles wholly in front are drawn).
@@ -234,8 +271,9 @@ fn rasterize_culled(
         }
     }
     Ok(DepthBuffer {
-        width,
-        height,
+        width: image_width,
+        height: image_height,
+        scale,
         window: (wx0, wy0, ww, wh),
         inv_depth,
         face,
@@ -245,6 +283,15 @@ fn rasterize_culled(
 impl DepthBuffer {
     /// Index into the window's buffers of an image pixel, if in it.
     fn index(&self, x: isize, y: isize) -> Option<usize> {
+        let (x, y) = if self.scale > 1.0 {
+            // The cell of the pixel's centre.
+            (
+                ((x as f64 + 0.5) / self.scale).floor() as isize,
+                ((y as f64 + 0.5) / self.scale).floor() as isize,
+            )
+        } else {
+            (x, y)
+        };
         let (x0, y0, w, h) = self.window;
         let (dx, dy) = (x - x0 as isize, y - y0 as isize);
         (dx >= 0 && dy >= 0 && (dx as usize) < w && (dy as usize) < h)
@@ -340,6 +387,7 @@ impl EdgeModel {
         Self {
             solid,
             corners,
+            radius: mesh.vertices.iter().map(|v| v.norm()).fold(0.0, f64::max),
             vertices: mesh.vertices.clone(),
             triangles: mesh.triangles.clone(),
             offsets: normals
@@ -368,13 +416,18 @@ impl EdgeModel {
         } else {
             Cull::None
         };
+        // A large object's buffers are coarser: the visibility of its
+        // edges needs no finer cells, and time no longer grows with its
+        // size in the image.
+        let z = pose.translation.norm();
+        let diameter = 2.0 * k.fx.max(k.fy) * self.radius / z.max(1e-12);
+        let scale = (diameter / DEPTH_MAX_PX).max(1.0);
         rasterize_culled(
             &self.vertices,
             &self.triangles,
             k,
             pose,
-            width,
-            height,
+            (width, height, scale),
             cull,
             deadline,
         )
@@ -394,7 +447,7 @@ impl EdgeModel {
 
     /// The largest distance of a vertex from the object's origin.
     pub fn radius(&self) -> f64 {
-        self.vertices.iter().map(|v| v.norm()).fold(0.0, f64::max)
+        self.radius
     }
 
     /// Whether each face looks towards the camera at `pose`: its normal
@@ -428,6 +481,10 @@ impl EdgeModel {
         let mut out = Vec::new();
         let (w, h) = (depth.width as f64, depth.height as f64);
         let front = self.facing(pose);
+        // How much (a share of the depth) a face inclined by up to 70
+        // degrees moves in depth over the depth buffers' cells beyond a
+        // pixel.
+        let cell_slope = ((depth.scale - 1.0) * 70f64.to_radians().tan() / k.fx.min(k.fy)) as f32;
         // Distance (pixels) from the start of the next edge to its first
         // sample.
         let mut next = 0.5 * step;
@@ -485,7 +542,8 @@ impl EdgeModel {
                     continue;
                 }
                 // Visible when no surface in the pixel's neighbourhood is
-                // clearly in front of the point.
+                // clearly in front of the point (in coarser buffers, by
+                // more than a steep face's depth changes over a cell).
                 let (ix, iy) = (px.x.floor() as isize, px.y.floor() as isize);
                 let mut far = 0.0f32;
                 for dy in -1..=1 {
@@ -494,7 +552,7 @@ impl EdgeModel {
                     }
                 }
                 let z = c3.z as f32;
-                if z <= far + 1e-3 * z.abs() + 1e-6 {
+                if z <= far + (1e-3 + cell_slope) * z.abs() + 1e-6 {
                     out.push(EdgeSample {
                         point: p3,
                         pixel: px,
@@ -745,6 +803,68 @@ mod tests {
         let c = k.project(&pose.translation).unwrap();
         let z = depth.at(c.x as isize, c.y as isize);
         assert!(z < 0.6 && z > 0.6 - 0.0867, "{z}");
+    }
+
+    #[test]
+    fn a_large_object_is_drawn_in_coarser_cells_with_the_same_visible_edges() {
+        // A 0.2 m cube at 0.6 m, 640x480 at 1200 px focal length: its
+        // bounding sphere is ~690 px wide, so cells of ~6.9 pixels.
+        let (_, pose) = setup();
+        let k = Intrinsics {
+            fx: 1200.0,
+            fy: 1200.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        let mesh = Mesh::cuboid(0.2, 0.2, 0.2);
+        let em = EdgeModel::new(&mesh, 30.0);
+        let coarse = em.depth(&k, &pose, 640, 480, &Deadline::NONE).unwrap();
+        assert!(coarse.scale > 6.0, "{}", coarse.scale);
+        let fine = rasterize(
+            &mesh.vertices,
+            &mesh.triangles,
+            &k,
+            &pose,
+            640,
+            480,
+            true,
+            &Deadline::NONE,
+        )
+        .unwrap();
+        assert_eq!(fine.scale, 1.0);
+        // The same pixels covered, except within a cell of the outline.
+        let (mut differ, mut covered) = (0, 0);
+        for y in 0..480 {
+            for x in 0..640 {
+                covered += usize::from(fine.covered(x, y));
+                differ += usize::from(fine.covered(x, y) != coarse.covered(x, y));
+            }
+        }
+        assert!(
+            covered > 50_000 && differ * 10 < covered,
+            "{differ} of {covered}"
+        );
+        // The depth inside: within the cube's depth change over a cell.
+        let c = k.project(&pose.translation).unwrap();
+        let (zf, zc) = (
+            fine.at(c.x as isize, c.y as isize),
+            coarse.at(c.x as isize, c.y as isize),
+        );
+        assert!((zf - zc).abs() < 0.01, "{zf} {zc}");
+        // The same visible edges: the same samples, but for a few at the
+        // corners where the hidden edges meet the outline.
+        let a = em.samples(&k, &pose, &fine, 2.0, &Deadline::NONE).unwrap();
+        let b = em
+            .samples(&k, &pose, &coarse, 2.0, &Deadline::NONE)
+            .unwrap();
+        let missing = a.iter().filter(|s| !b.contains(s)).count();
+        let extra = b.iter().filter(|s| !a.contains(s)).count();
+        assert!(a.len() > 500, "{}", a.len());
+        assert!(
+            missing + extra <= a.len() / 50,
+            "{missing} missing, {extra} extra of {}",
+            a.len()
+        );
     }
 
     #[test]
