@@ -312,6 +312,11 @@ impl DepthBuffer {
         (self.face[i] != u32::MAX).then_some(self.face[i])
     }
 
+    /// Image pixels per cell of the buffers, each way.
+    pub fn cell_px(&self) -> f64 {
+        self.scale
+    }
+
     /// Whether the pixel shows the object.
     pub fn covered(&self, x: usize, y: usize) -> bool {
         self.at(x as isize, y as isize).is_finite()
@@ -400,13 +405,42 @@ impl EdgeModel {
         }
     }
 
-    /// Depth of the mesh at `pose` (see [`rasterize`]).
+    /// Depth of the mesh at `pose` (see [`rasterize`]); a large object's
+    /// in cells of several pixels (see [`DEPTH_MAX_PX`]).
     pub fn depth(
         &self,
         k: &Intrinsics,
         pose: &Pose,
         width: usize,
         height: usize,
+        deadline: &Deadline,
+    ) -> Result<DepthBuffer, PoseError> {
+        // A large object's buffers are coarser: the visibility of its
+        // edges needs no finer cells, and time no longer grows with its
+        // size in the image.
+        let z = pose.translation.norm();
+        let diameter = 2.0 * k.fx.max(k.fy) * self.radius / z.max(1e-12);
+        let scale = (diameter / DEPTH_MAX_PX).max(1.0);
+        self.depth_scaled(k, pose, (width, height, scale), deadline)
+    }
+
+    /// [`Self::depth`] in cells of a pixel, whatever the object's size.
+    pub fn depth_in_pixels(
+        &self,
+        k: &Intrinsics,
+        pose: &Pose,
+        width: usize,
+        height: usize,
+        deadline: &Deadline,
+    ) -> Result<DepthBuffer, PoseError> {
+        self.depth_scaled(k, pose, (width, height, 1.0), deadline)
+    }
+
+    fn depth_scaled(
+        &self,
+        k: &Intrinsics,
+        pose: &Pose,
+        image: (usize, usize, f64),
         deadline: &Deadline,
     ) -> Result<DepthBuffer, PoseError> {
         let front;
@@ -416,18 +450,12 @@ impl EdgeModel {
         } else {
             Cull::None
         };
-        // A large object's buffers are coarser: the visibility of its
-        // edges needs no finer cells, and time no longer grows with its
-        // size in the image.
-        let z = pose.translation.norm();
-        let diameter = 2.0 * k.fx.max(k.fy) * self.radius / z.max(1e-12);
-        let scale = (diameter / DEPTH_MAX_PX).max(1.0);
         rasterize_culled(
             &self.vertices,
             &self.triangles,
             k,
             pose,
-            (width, height, scale),
+            image,
             cull,
             deadline,
         )

@@ -282,7 +282,13 @@ impl Context<'_> {
         let (drawn, stride) = self.outline(pose, &depth)?;
         for s in drawn.iter().filter(|s| in_mask(&s.pixel)) {
             if let Some(colour) = &self.colour {
-                let step = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX).and_then(|nn| {
+                let step = outward(
+                    &depth,
+                    &s.pixel,
+                    &s.normal,
+                    REGION_PROBE_PX.max(depth.cell_px()),
+                )
+                .and_then(|nn| {
                     colour.step(
                         self.img,
                         &s.pixel,
@@ -372,7 +378,12 @@ impl Context<'_> {
                 .iter()
                 .filter(|s| in_mask(&s.pixel, grow))
                 .filter_map(|s| {
-                    let n = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX)?;
+                    let n = outward(
+                        &depth,
+                        &s.pixel,
+                        &s.normal,
+                        REGION_PROBE_PX.max(depth.cell_px()),
+                    )?;
                     let st = colour.step(self.img, &s.pixel, &n, region_range, REGION_TEMPER)?;
                     let target = s.pixel + n * st.offset;
                     // The background side must be in the image: past the
@@ -631,7 +642,8 @@ pub fn refine_until(
         }
     }
     let colour = if params.region_weight > 0.0 {
-        let depth = edges.depth(k, initial, img.width(), img.height(), &deadline)?;
+        // Pixel by pixel: the colours are told apart at the outline.
+        let depth = edges.depth_in_pixels(k, initial, img.width(), img.height(), &deadline)?;
         ColourModel::new(img, &depth, mask, REGION_BAND_PX)
     } else {
         None
