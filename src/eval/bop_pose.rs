@@ -197,7 +197,8 @@ fn zoom_mask(m: &Mask, f: f64, centre: (f64, f64)) -> Mask {
         let sy = ((y as f64 - mid_y) / f + centre.1).round();
         for x in 0..w {
             let sx = ((x as f64 - mid_x) / f + centre.0).round();
-            if sx >= 0.0 && sy >= 0.0 && m.get(sx as usize, sy as usize) {
+            let inside = sx >= 0.0 && sy >= 0.0 && (sx as usize) < w && (sy as usize) < h;
+            if inside && m.get(sx as usize, sy as usize) {
                 out.set(x, y, true);
             }
         }
@@ -417,15 +418,14 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
             })
             .filter(|(im, i)| {
                 // The photograph's size from its header (only where asked).
-                let size = || {
-                    image::image_dimensions(bop.rgb_path(im))
-                        .map(|(w, h)| (w as usize, h as usize))
-                        .ok()
-                };
-                let border = row.cut != Cut::Any
-                    && i.bbox_obj
-                        .zip(size())
-                        .is_some_and(|(b, (w, h))| touches_border(b, w, h));
+                let size = (row.cut != Cut::Any)
+                    .then(|| image::image_dimensions(bop.rgb_path(im)).ok())
+                    .flatten()
+                    .map(|(w, h)| (w as usize, h as usize));
+                let border = i
+                    .bbox_obj
+                    .zip(size)
+                    .is_some_and(|(b, (w, h))| touches_border(b, w, h));
                 let cut_ok = match row.cut {
                     Cut::Any => true,
                     Cut::Border => border,
@@ -434,7 +434,7 @@ pub fn select<'a>(bop: &'a Bop, row: &Row, sel: &Selection) -> Vec<Case<'a>> {
                     // The enlarged object must fit in the photograph.
                     Cut::Zoomed(f) => {
                         !border
-                            && i.bbox_obj.zip(size()).is_some_and(|(b, (w, h))| {
+                            && i.bbox_obj.zip(size).is_some_and(|(b, (w, h))| {
                                 b[2] * f <= w as f64 && b[3] * f <= h as f64
                             })
                     }

@@ -123,10 +123,10 @@ enum Cull<'a> {
     Facing(&'a [bool]),
 }
 
-#[allow(clippy::too_many_arguments)]
-/// `image`: the image's width and height and the image pixels per cell
-/// of the buffers (at least 1): the triangles are drawn at the cells'
-/// centres, a camera whose pixels are that much larger.
+/// [`rasterize`], skipping the triangles `cull` says. `image`: the
+/// image's width and height and the image pixels per cell of the buffers
+/// (at least 1): the triangles are drawn at the cells' centres, a camera
+/// whose pixels are that much larger.
 fn rasterize_culled(
     vertices: &[Vector3<f64>],
     triangles: &[[u32; 3]],
@@ -376,12 +376,7 @@ impl EdgeModel {
             })
             .collect();
         edges.sort_by_key(|e| (e.a, e.b));
-        let mut lo = Vector3::repeat(f64::INFINITY);
-        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-        for v in &mesh.vertices {
-            lo = lo.inf(v);
-            hi = hi.sup(v);
-        }
+        let (lo, hi) = mesh.bounds();
         let corners = std::array::from_fn(|i| {
             Vector3::new(
                 if i & 1 == 0 { lo.x } else { hi.x },

@@ -282,13 +282,7 @@ impl Context<'_> {
         let (drawn, stride) = self.outline(pose, &depth)?;
         for s in drawn.iter().filter(|s| in_mask(&s.pixel)) {
             if let Some(colour) = &self.colour {
-                let step = outward(
-                    &depth,
-                    &s.pixel,
-                    &s.normal,
-                    REGION_PROBE_PX.max(depth.cell_px()),
-                )
-                .and_then(|nn| {
+                let step = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX).and_then(|nn| {
                     colour.step(
                         self.img,
                         &s.pixel,
@@ -378,12 +372,7 @@ impl Context<'_> {
                 .iter()
                 .filter(|s| in_mask(&s.pixel, grow))
                 .filter_map(|s| {
-                    let n = outward(
-                        &depth,
-                        &s.pixel,
-                        &s.normal,
-                        REGION_PROBE_PX.max(depth.cell_px()),
-                    )?;
+                    let n = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX)?;
                     let st = colour.step(self.img, &s.pixel, &n, region_range, REGION_TEMPER)?;
                     let target = s.pixel + n * st.offset;
                     // The background side must be in the image: past the

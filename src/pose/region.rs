@@ -182,7 +182,8 @@ impl ColourModel {
 
 /// The outward normal (from the object to the background) of an outline
 /// sample at `pixel` with edge normal `n`: the side `probe` pixels away
-/// that the projection covers is the inside. `None` for an edge with the
+/// (at least a cell of the buffers) that the projection covers is the
+/// inside. `None` for an edge with the
 /// object on both sides or neither (creases, inner outlines).
 pub fn outward(
     depth: &DepthBuffer,
@@ -190,6 +191,7 @@ pub fn outward(
     n: &Vector2<f64>,
     probe: f64,
 ) -> Option<Vector2<f64>> {
+    let probe = probe.max(depth.cell_px());
     let covered =
         |p: Vector2<f64>| p.x >= 0.0 && p.y >= 0.0 && depth.covered(p.x as usize, p.y as usize);
     match (covered(pixel - n * probe), covered(pixel + n * probe)) {
