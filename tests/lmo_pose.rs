@@ -33,6 +33,7 @@ fn or_irls_improves_the_start(name: &str, visib: (f64, f64), cut: Cut) {
         start_degrees: 5.0,
         start_mm: 10.0,
         prior_from_start: false,
+        uncertainty: None,
         cut,
         min_diagonal: None,
         max_iterations: None,

@@ -44,8 +44,14 @@ pub(crate) struct PoseEvalArgs {
     /// (as a client that knows how good its start is); default: the
     /// service's default uncertainty (5 degrees, 5% of the mesh's
     /// box diagonal).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "start_uncertainty")]
     pub(crate) prior_from_start: bool,
+    /// Send this start uncertainty with every request, "DEGREES,MM" (as a
+    /// client that states its own; e.g. "5,20" is the translation prior
+    /// that 5% of the box diagonal gave an object 2.5 times the size of
+    /// the development objects)
+    #[arg(long)]
+    pub(crate) start_uncertainty: Option<String>,
     /// The requests' `max_iterations` (outer iterations per start; default:
     /// the service's).
     #[arg(long)]
@@ -87,22 +93,32 @@ pub(crate) fn run_pose_eval(args: &PoseEvalArgs) -> Result<(), Failure> {
         seed: args.seed,
         starts: args.starts as usize,
     };
+    let uncertainty = args
+        .start_uncertainty
+        .as_deref()
+        .map(|text| {
+            parse_pair(text)
+                .filter(|(d, mm)| *d >= 0.0 && *mm >= 0.0)
+                .ok_or_else(|| {
+                    Failure::input(format!("--start-uncertainty {text:?}: expected DEGREES,MM"))
+                })
+        })
+        .transpose()?;
     let row = |name: &str, visib: (f64, f64), start_degrees: f64, start_mm: f64| Row {
         name: name.to_string(),
         visib,
         start_degrees,
         start_mm,
         prior_from_start: args.prior_from_start,
+        uncertainty,
         cut: Cut::Any,
         min_diagonal: None,
         max_iterations: args.max_iterations,
     };
     let mut rows = vec![row("occluded, 5 deg / 10 mm starts", (lo, hi), 5.0, 10.0)];
     if let Some(text) = &args.start {
-        let (d, mm) = text
-            .split_once(',')
-            .and_then(|(a, b)| Some((a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?)))
-            .filter(|(d, mm)| d.is_finite() && mm.is_finite() && *d >= 0.0 && *mm >= 0.0)
+        let (d, mm) = parse_pair(text)
+            .filter(|(d, mm)| *d >= 0.0 && *mm >= 0.0)
             .ok_or_else(|| Failure::input(format!("--start {text:?}: expected DEGREES,MM")))?;
         rows = vec![row(
             &format!("occluded, {d} deg / {mm} mm starts"),
@@ -197,4 +213,11 @@ fn border_rows(base: &Row) -> Vec<Row> {
             ..base.clone()
         },
     ]
+}
+
+/// Two finite numbers, "A,B".
+fn parse_pair(text: &str) -> Option<(f64, f64)> {
+    let (a, b) = text.split_once(',')?;
+    let (a, b) = (a.trim().parse::<f64>().ok()?, b.trim().parse::<f64>().ok()?);
+    (a.is_finite() && b.is_finite()).then_some((a, b))
 }

@@ -43,6 +43,10 @@ pub struct Row {
     /// the row's degrees and mm), as a client that knows it would; else
     /// the service's default.
     pub prior_from_start: bool,
+    /// Send this uncertainty (degrees, mesh units) with every request
+    /// instead (as a client that states its own).
+    #[serde(default)]
+    pub uncertainty: Option<(f64, f64)>,
     /// Which instances of the visibility range: all, those whose full
     /// extent touches the image's border, or cropped photographs.
     #[serde(default)]
@@ -587,10 +591,15 @@ pub fn run(
                 model: None,
                 mask: Some(source),
                 max_iterations: row.max_iterations,
-                start_uncertainty: row.prior_from_start.then_some(StartUncertainty {
-                    degrees: Some(row.start_degrees),
-                    translation: Some(row.start_mm),
-                }),
+                start_uncertainty: row
+                    .uncertainty
+                    .or(row
+                        .prior_from_start
+                        .then_some((row.start_degrees, row.start_mm)))
+                    .map(|(degrees, mm)| StartUncertainty {
+                        degrees: Some(degrees),
+                        translation: Some(mm),
+                    }),
             };
             let m = (source == MaskSource::Provided).then(|| mask.clone());
             let t = Instant::now();

@@ -73,12 +73,21 @@ const REGION_TEMPER: f64 = 0.5;
 const REGION_BAND_PX: usize = 20;
 
 /// Edge samples per outline at most: a larger outline is sampled more
-/// sparsely, each sample weighing for the ones left out, so that the time
-/// does not grow with the object's size in the image while the evidence
-/// keeps its weight against the start prior (the LM-O development
-/// objects: median 125 samples, three quarters under 143; capping the
-/// weight too moved a synthetic box 4.2 mm off, past its test's 3 mm).
+/// sparsely, so that neither the time nor the evidence's weight against
+/// the start prior grows with the object's size in the image (the LM-O
+/// development objects: median 125 samples, three quarters under 143).
+/// A large object is no more certain of its depth than the image's
+/// resolution of its outline says: when each kept sample weighed for the
+/// ones left out, the development photographs enlarged 2.5 times with the
+/// prior a 2.5 times larger object gets ended with a depth error of 7.9
+/// mm against the start's 5.3 (see docs/design.md).
 pub const MAX_SAMPLES: usize = 160;
+
+/// The least robust scale (pixels) of the edge residuals against the start
+/// prior: edges are found to a fraction of a pixel (a parabola through the
+/// gradient's peak), so a clean outline is trusted to half a pixel (with a
+/// whole pixel, a synthetic box held by the prior ended 4.2 mm off).
+const MIN_SCALE_PX: f64 = 0.5;
 
 /// The residual (pixels along the normal from the projected model point to
 /// its match) and its derivative with respect to the twist at `pose`.
@@ -181,7 +190,40 @@ fn growth(params: &IrlsParams, range: f64) -> usize {
     params.mask_margin_px.max(range.round() as usize)
 }
 
-impl Context<'_> {
+impl<'a> Context<'a> {
+    /// What the tracks from `initial` share: the colour model taken at it,
+    /// the image's gradients, the mask's distances and the start prior.
+    fn new(
+        img: &'a ColorImage,
+        edges: &'a EdgeModel,
+        k: &'a Intrinsics,
+        initial: &Pose,
+        mask: Option<&Mask>,
+        params: &'a IrlsParams,
+        deadline: Deadline,
+    ) -> Result<Self, PoseError> {
+        let colour = if params.region_weight > 0.0 {
+            // Pixel by pixel: the colours are told apart at the outline.
+            let depth = edges.depth_in_pixels(k, initial, img.width(), img.height(), &deadline)?;
+            ColourModel::new(img, &depth, mask, REGION_BAND_PX)
+        } else {
+            None
+        };
+        Ok(Context {
+            img,
+            colour,
+            grads: Gradients::new(img),
+            edges,
+            k,
+            mask: mask.map(MaskDistance::new),
+            params,
+            radius: edges.radius(),
+            initial: *initial,
+            deadline,
+            prior: start_prior(params, edges),
+        })
+    }
+
     /// The deviation of `pose` from the initial pose, `(t - t0, log(R
     /// R0^T))`.
     fn deviation(&self, pose: &Pose) -> Vector6<f64> {
@@ -233,13 +275,8 @@ impl Context<'_> {
     }
 
     /// The visible model edge samples at `pose` in the image, at most
-    /// [`MAX_SAMPLES`] (evenly thinned: every `stride`-th), and the stride:
-    /// the weight of each.
-    fn outline(
-        &self,
-        pose: &Pose,
-        depth: &DepthBuffer,
-    ) -> Result<(Vec<EdgeSample>, usize), PoseError> {
+    /// [`MAX_SAMPLES`] (evenly thinned: every `stride`-th).
+    fn outline(&self, pose: &Pose, depth: &DepthBuffer) -> Result<Vec<EdgeSample>, PoseError> {
         let all: Vec<EdgeSample> = self
             .edges
             .samples(self.k, pose, depth, self.params.sample_step, &self.deadline)?
@@ -247,7 +284,7 @@ impl Context<'_> {
             .filter(|s| self.inside(&s.pixel))
             .collect();
         let stride = all.len().div_ceil(MAX_SAMPLES).max(1);
-        Ok((all.into_iter().step_by(stride).collect(), stride))
+        Ok(all.into_iter().step_by(stride).collect())
     }
 
     /// Whether a point lies within the image's pixel centres: past the
@@ -279,7 +316,7 @@ impl Context<'_> {
         let cut2 = EVIDENCE_CUT_PX * EVIDENCE_CUT_PX;
         let (mut sum, mut n, mut close) = (0.0, 0usize, 0usize);
         let (mut outline, mut outline_close) = (0usize, 0usize);
-        let (drawn, stride) = self.outline(pose, &depth)?;
+        let drawn = self.outline(pose, &depth)?;
         for s in drawn.iter().filter(|s| in_mask(&s.pixel)) {
             if let Some(colour) = &self.colour {
                 let step = outward(&depth, &s.pixel, &s.normal, REGION_PROBE_PX).and_then(|nn| {
@@ -313,7 +350,7 @@ impl Context<'_> {
         }
         Ok(Evidence {
             mean: if n > 0 { sum / n as f64 } else { cut2 },
-            samples: n * stride,
+            samples: n,
             agreement: if n > 0 { close as f64 / n as f64 } else { 0.0 },
             region_agreement: if outline > 0 {
                 outline_close as f64 / outline as f64
@@ -354,8 +391,7 @@ impl Context<'_> {
             ..*params
         };
         let grow = growth(params, range);
-        let (samples, stride) = self.outline(&t.pose, &depth)?;
-        let weight = stride as f64;
+        let samples = self.outline(&t.pose, &depth)?;
         let in_mask =
             |p: &Vector2<f64>, r: usize| self.mask.as_ref().is_none_or(|m| m.within(p, r));
         // The outline's place along each outline sample's outward normal
@@ -436,13 +472,13 @@ impl Context<'_> {
                             )
                         })
                         .min_by(|a, b| a.0.abs().total_cmp(&b.0.abs()))
-                        .map(|(r, j)| (r, j, weight))
+                        .map(|(r, j)| (r, j, 1.0))
                 })
                 .collect();
             rows.extend(regions.iter().filter_map(|(s, offset, variance)| {
                 let target = s.pixel + s.normal * *offset;
                 let (r, j) = residual_and_jacobian(k, &t.pose, &s.point, &s.normal, &target)?;
-                Some((r, j, weight * params.region_weight / (1.0 + variance)))
+                Some((r, j, params.region_weight / (1.0 + variance)))
             }));
             let mut abs: Vec<f64> = rows.iter().map(|(r, _, _)| r.abs()).collect();
             abs.sort_by(f64::total_cmp);
@@ -472,7 +508,7 @@ impl Context<'_> {
                 // samples; then the start pose's prior on the deviation
                 // e = (t - t0, log(R R0^T)), whose derivative in the twist
                 // is [[I, -[t]x], [0, I]].
-                let scale = 1.0 / (sigma.max(1.0).powi(2) * params.sample_correlation);
+                let scale = 1.0 / (sigma.max(MIN_SCALE_PX).powi(2) * params.sample_correlation);
                 h *= scale;
                 g *= scale;
                 let (e, jp) = (self.deviation(&t.pose), Self::deviation_jacobian(&t.pose));
@@ -630,26 +666,7 @@ pub fn refine_until(
             )));
         }
     }
-    let colour = if params.region_weight > 0.0 {
-        // Pixel by pixel: the colours are told apart at the outline.
-        let depth = edges.depth_in_pixels(k, initial, img.width(), img.height(), &deadline)?;
-        ColourModel::new(img, &depth, mask, REGION_BAND_PX)
-    } else {
-        None
-    };
-    let ctx = Context {
-        img,
-        colour,
-        grads: Gradients::new(img),
-        edges,
-        k,
-        mask: mask.map(MaskDistance::new),
-        params,
-        radius: edges.radius(),
-        initial: *initial,
-        deadline,
-        prior: start_prior(params, edges),
-    };
+    let ctx = Context::new(img, edges, k, initial, mask, params, deadline)?;
     let new_track = |pose: Pose| Track {
         pose,
         iterations: 0,
@@ -777,6 +794,41 @@ mod tests {
         assert_eq!(r.unwrap_err(), PoseError::DeadlineExceeded);
         let far = Deadline::at(std::time::Instant::now() + std::time::Duration::from_secs(600));
         assert!(refine_until(&sc.image, &edges, &k, &pose, None, &params, far).is_ok());
+    }
+
+    /// A near object's long outline is thinned to [`MAX_SAMPLES`], and the
+    /// evidence counts the kept samples only: its weight against the start
+    /// prior does not grow with the object's size in the image.
+    #[test]
+    fn a_large_outline_weighs_no_more_than_max_samples() {
+        let k = Intrinsics {
+            fx: 600.0,
+            fy: 600.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        let mesh = crate::pose::Mesh::cuboid(0.15, 0.1, 0.07);
+        let pose = Pose {
+            rotation: nalgebra::Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
+            translation: Vector3::new(0.0, 0.0, 0.25),
+        };
+        let bg = crate::pose::render::background(640, 480, 1).unwrap();
+        let sc = crate::pose::render::render(&mesh, &k, &pose, &bg, 0.0, 2.0, 1).unwrap();
+        let params = IrlsParams::default();
+        let edges = EdgeModel::new(&mesh, params.crease_degrees);
+        let ctx =
+            Context::new(&sc.image, &edges, &k, &pose, None, &params, Deadline::NONE).unwrap();
+        let depth = edges.depth(&k, &pose, 640, 480, &Deadline::NONE).unwrap();
+        let all = edges
+            .samples(&k, &pose, &depth, params.sample_step, &Deadline::NONE)
+            .unwrap();
+        assert!(all.len() > 2 * MAX_SAMPLES, "{} samples", all.len());
+        let kept = ctx.outline(&pose, &depth).unwrap();
+        assert!(kept.len() <= MAX_SAMPLES && kept.len() >= MAX_SAMPLES / 2);
+        let ev = ctx.evidence(&pose).unwrap();
+        assert!(ev.samples <= MAX_SAMPLES, "{}", ev.samples);
+        // At the true pose the rendered edges are found.
+        assert!(ev.agreement > 0.8, "{}", ev.agreement);
     }
 
     #[test]
