@@ -257,6 +257,33 @@ fn mesh_training_refuses_bad_input_with_status_2() {
     ]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("twice"), "{err}");
+    // Box photographs: an empty file is refused before any rendering,
+    // naming it; so is a second object beside them.
+    let empty = dir.join("empty.json");
+    std::fs::write(&empty, "{}").unwrap();
+    let (code, err) = run(&[
+        "--mesh",
+        junk.to_str().unwrap(),
+        "--photos",
+        empty.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("empty.json") && err.contains("no photographs"),
+        "{err}"
+    );
+    let (code, err) = run(&[
+        "--mesh",
+        junk.to_str().unwrap(),
+        "--mesh",
+        "b.ply",
+        "--name",
+        "y",
+        "--photos",
+        empty.to_str().unwrap(),
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("one object per model"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

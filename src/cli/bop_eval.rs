@@ -54,6 +54,11 @@ pub(crate) struct BopEvalArgs {
     /// Only every n-th photograph (a quick check).
     #[arg(long, default_value_t = 1)]
     pub(crate) every: usize,
+    /// The first N photographs (by image id) trained the detectors (their
+    /// boxes, as `lmo_boxes_coco.py --first N` writes them): they are left
+    /// out of the scoring, as `lmo_detect_eval.py --train-photos N` does.
+    #[arg(long, default_value_t = 0)]
+    pub(crate) train_photos: usize,
     /// JSON report (default out/bop-eval/report.json) and plot beside it.
     #[arg(long, default_value = "out/bop-eval")]
     pub(crate) out: PathBuf,
@@ -346,7 +351,23 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
             args.data.display()
         )));
     }
-    let images: Vec<usize> = (0..bop.images.len()).step_by(args.every).collect();
+    // Photographs by image id (scene by scene), those that trained
+    // nothing.
+    let mut order: Vec<usize> = (0..bop.images.len()).collect();
+    order.sort_by_key(|&i| bop.images[i].id);
+    if args.train_photos >= order.len() {
+        return Err(Failure::input(format!(
+            "--train-photos {}: {} has only {} photographs, none left to score",
+            args.train_photos,
+            args.data.display(),
+            order.len()
+        )));
+    }
+    let images: Vec<usize> = order
+        .into_iter()
+        .skip(args.train_photos)
+        .step_by(args.every)
+        .collect();
     let mut meshes = std::collections::BTreeMap::new();
     if args.pose {
         for &obj in bop.models.keys() {
@@ -399,6 +420,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
     let json = serde_json::json!({
         "data": args.data.display().to_string(),
         "images": images.len(),
+        "train_photos": args.train_photos,
         "threshold": args.threshold,
         "max_detections": args.max_detections,
         "variants": variants,

@@ -100,6 +100,21 @@ pub(crate) struct MeshArgs {
     /// With `--from-views`: training photographs made from each view.
     #[arg(long, default_value_t = 3, requires = "from_views")]
     pub(crate) per_view: usize,
+    /// Photographs of the object's scene with boxes drawn on them: a COCO
+    /// file whose boxes of the category named `--name` are the object's
+    /// full extent (no masks needed; `file_name`s relative to the file's
+    /// folder; `iscrowd` boxes are ignored), e.g. from
+    /// `lmo_boxes_coco.py`. The renders train first; then each box's
+    /// component and visible cells are imputed under the model (latent,
+    /// `--latent-rounds` times) and the model retrains on renders and
+    /// boxes together. The photographs' places outside the boxes are hard
+    /// negatives, and photographs without the object are negatives. One
+    /// object per model.
+    #[arg(long, conflicts_with = "from_views")]
+    pub(crate) photos: Option<PathBuf>,
+    /// With `--photos`: rounds of imputing the boxes and retraining.
+    #[arg(long, default_value_t = MultiViewParams::default().latent_rounds, requires = "photos")]
+    pub(crate) latent_rounds: usize,
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
 }
@@ -363,6 +378,16 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             "--from-views trains one object per model: run it once per --mesh",
         ));
     }
+    if args.photos.is_some() && args.mesh.len() > 1 {
+        return Err(Failure::input(
+            "--photos trains one object per model: run it once per --mesh",
+        ));
+    }
+    // The photographs first: a bad file is refused before any rendering.
+    let photos = match &args.photos {
+        Some(file) => Some(photo_samples(file, &args.name[0])?),
+        None => None,
+    };
     let model_name = match (&args.model_name, &args.name[..]) {
         (Some(m), _) => m.clone(),
         (None, [one]) => one.clone(),
@@ -515,6 +540,40 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         directions = views_route.directions;
         rotations = views_route.rotations;
         (views_route.model, views_route.report)
+    } else if let Some(photos) = &photos {
+        let fixed: Vec<&Sample> = samples
+            .iter()
+            .chain(&negatives)
+            .chain(&photos.negatives)
+            .collect();
+        let src = Sources {
+            fixed,
+            views: Vec::new(),
+            occluders: Vec::new(),
+            backgrounds: Vec::new(),
+            boxes: photos.boxes.clone(),
+        };
+        let mv = MultiViewParams {
+            latent_rounds: args.latent_rounds,
+            ..MultiViewParams::default()
+        };
+        let (mut m, mut r) =
+            train_sources(&args.name[0], src, &cache, &params, &mv, &pb).map_err(Failure::input)?;
+        for v in &mut m.meta.viewpoints {
+            v.views.clear();
+        }
+        for (i, round) in r.imputation.iter().enumerate() {
+            eprintln!(
+                "{}: round {}: {} boxes imputed ({} fit no component), {} changed component, {:.2} of their cells visible",
+                args.name[0],
+                i + 1,
+                round.boxes,
+                round.unfit,
+                round.component_changes,
+                round.mean_visible
+            );
+        }
+        (m, r.rounds.pop().unwrap_or_default())
     } else {
         let refs: Vec<&Sample> = samples.iter().chain(&negatives).collect();
         let labels: Vec<&str> = args.name.iter().map(String::as_str).collect();
@@ -581,6 +640,13 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
                     .collect::<Vec<_>>(),
                 "render": render,
                 "from_views": args.from_views,
+                "photos": photos.as_ref().map(|p| serde_json::json!({
+                    "file": p.file.display().to_string(),
+                    "boxes": p.boxes.len(),
+                    "negatives": p.negatives.len(),
+                    "skipped": p.skipped,
+                    "latent_rounds": args.latent_rounds,
+                })),
                 "backgrounds": args.backgrounds.display().to_string(),
                 "negatives": negatives.len(),
             }),
@@ -723,3 +789,73 @@ fn train_from_views(
 
 /// Background photographs that views are set on (`--from-views`).
 const BACKDROP_SCENES: usize = 20;
+
+/// `--photos`: the box-only photographs as training samples.
+struct PhotoSamples {
+    file: PathBuf,
+    /// One box of the object each, its visibility and component latent
+    /// (to begin with: the whole box, component 0).
+    boxes: Vec<Sample>,
+    /// Photographs without the object (nor an ignored box of it).
+    negatives: Vec<Sample>,
+    /// Photographs left out, and why.
+    skipped: Vec<String>,
+}
+
+/// Reads `file`'s photographs for the object `name` (see
+/// [`crate::data::load_box_photos`]). A photograph with two boxes of the
+/// object, or only an ignored one, is left out (one sample holds one box,
+/// and either would make a negative of an instance), named on stderr.
+fn photo_samples(file: &Path, name: &str) -> Result<PhotoSamples, Failure> {
+    let loaded = crate::data::load_box_photos(file, name).map_err(Failure::input)?;
+    let mut out = PhotoSamples {
+        file: file.to_path_buf(),
+        boxes: Vec::new(),
+        negatives: Vec::new(),
+        skipped: Vec::new(),
+    };
+    for p in loaded.photos {
+        let id = crate::data::file_stem(&p.image);
+        match (&p.boxes[..], p.ignore.is_empty()) {
+            ([b], true) => out.boxes.push(Sample {
+                image: p.image.clone(),
+                id,
+                annotation: Some(crate::data::Annotation {
+                    label: name.to_string(),
+                    bbox: *b,
+                    visible: crate::data::box_mask(*b, p.width, p.height),
+                    viewpoint: 0,
+                    mask_known: false,
+                }),
+            }),
+            ([], true) => out.negatives.push(Sample::negative(p.image.clone())),
+            ([], false) => out.skipped.push(format!(
+                "{}: only a hardly visible {name} (iscrowd): neither a box nor a negative",
+                p.image.display()
+            )),
+            (boxes, _) => out.skipped.push(format!(
+                "{}: {} boxes of {name} and {} hardly visible (iscrowd): a photograph trains one box, and the others would be negatives",
+                p.image.display(),
+                boxes.len(),
+                p.ignore.len()
+            )),
+        }
+    }
+    for s in &out.skipped {
+        eprintln!("--photos: left out {s}");
+    }
+    eprintln!(
+        "--photos {}: {} boxes of {name}, {} photographs without it, {} left out",
+        file.display(),
+        out.boxes.len(),
+        out.negatives.len(),
+        out.skipped.len()
+    );
+    if out.boxes.is_empty() {
+        return Err(Failure::input(format!(
+            "--photos {}: no photograph with exactly one box of {name}",
+            file.display()
+        )));
+    }
+    Ok(out)
+}

@@ -8,6 +8,7 @@
 //! name and skipped ([`Loaded::skipped`]), never a panic.
 
 pub mod bop;
+pub mod box_photos;
 pub mod coco;
 pub mod ko8;
 
@@ -149,5 +150,6 @@ pub(crate) fn check_box(
     Ok(())
 }
 
+pub use box_photos::{load_box_photos, BoxPhoto, BoxPhotos};
 pub use coco::{box_mask, decode_coco_rle_string, load_coco};
 pub use ko8::{ko8_visible_mask, parse_ko8_bbox, Ko8, KO8_OBJECTS};
