@@ -772,8 +772,16 @@ pub fn refine_until(
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_refinement_past_its_deadline_gives_up() {
+    /// A 15 x 10 x 7 cm box rendered `z` in front of a 640x480 camera: the
+    /// camera, the mesh, its pose and the scene.
+    fn box_scene(
+        z: f64,
+    ) -> (
+        Intrinsics,
+        crate::pose::Mesh,
+        Pose,
+        crate::pose::render::PoseScene,
+    ) {
         let k = Intrinsics {
             fx: 600.0,
             fy: 600.0,
@@ -783,10 +791,16 @@ mod tests {
         let mesh = crate::pose::Mesh::cuboid(0.15, 0.1, 0.07);
         let pose = Pose {
             rotation: nalgebra::Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
-            translation: Vector3::new(0.0, 0.0, 0.5),
+            translation: Vector3::new(0.0, 0.0, z),
         };
         let bg = crate::pose::render::background(640, 480, 1).unwrap();
         let sc = crate::pose::render::render(&mesh, &k, &pose, &bg, 0.0, 2.0, 1).unwrap();
+        (k, mesh, pose, sc)
+    }
+
+    #[test]
+    fn a_refinement_past_its_deadline_gives_up() {
+        let (k, mesh, pose, sc) = box_scene(0.5);
         let edges = EdgeModel::new(&mesh, 30.0);
         let params = IrlsParams::default();
         let past = Deadline::at(std::time::Instant::now());
@@ -801,19 +815,7 @@ mod tests {
     /// prior does not grow with the object's size in the image.
     #[test]
     fn a_large_outline_weighs_no_more_than_max_samples() {
-        let k = Intrinsics {
-            fx: 600.0,
-            fy: 600.0,
-            cx: 320.0,
-            cy: 240.0,
-        };
-        let mesh = crate::pose::Mesh::cuboid(0.15, 0.1, 0.07);
-        let pose = Pose {
-            rotation: nalgebra::Rotation3::from_euler_angles(0.5, 0.6, 0.2).into_inner(),
-            translation: Vector3::new(0.0, 0.0, 0.25),
-        };
-        let bg = crate::pose::render::background(640, 480, 1).unwrap();
-        let sc = crate::pose::render::render(&mesh, &k, &pose, &bg, 0.0, 2.0, 1).unwrap();
+        let (k, mesh, pose, sc) = box_scene(0.25);
         let params = IrlsParams::default();
         let edges = EdgeModel::new(&mesh, params.crease_degrees);
         let ctx =
