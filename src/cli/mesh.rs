@@ -115,8 +115,28 @@ pub(crate) struct MeshArgs {
     /// With `--photos`: rounds of imputing the boxes and retraining.
     #[arg(long, default_value_t = MultiViewParams::default().latent_rounds, requires = "photos")]
     pub(crate) latent_rounds: usize,
+    /// With `--photos`: how a box's visible part is labelled. `latent`:
+    /// its visible cells are imputed under the model with its component;
+    /// `full`: the whole box is visible and only its component is imputed.
+    #[arg(long, value_enum, default_value_t = PhotoVisibility::Latent, requires = "photos")]
+    pub(crate) photo_visibility: PhotoVisibility,
+    /// With `--photos`: share of the positives' weight in training carried
+    /// by the photographs' boxes, between 0 and 1 (the renders carry the
+    /// rest). Default: every box and render weighs the same.
+    #[arg(long, requires = "photos")]
+    pub(crate) photo_share: Option<f64>,
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
+}
+
+/// How the visible part of a box drawn on a photograph is labelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub(crate) enum PhotoVisibility {
+    /// The visible cells are imputed under the model (latent).
+    Latent,
+    /// The whole box is visible; only its component is imputed.
+    Full,
 }
 
 /// "A,B" as two numbers.
@@ -553,8 +573,14 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             backgrounds: Vec::new(),
             boxes: photos.boxes.clone(),
         };
+        let params = TrainParams {
+            box_share: args.photo_share,
+            ..params.clone()
+        };
+        params.validate().map_err(Failure::input)?;
         let mv = MultiViewParams {
             latent_rounds: args.latent_rounds,
+            latent_visibility: args.photo_visibility == PhotoVisibility::Latent,
             ..MultiViewParams::default()
         };
         let (mut m, mut r) =
@@ -646,6 +672,8 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
                     "negatives": p.negatives.len(),
                     "skipped": p.skipped,
                     "latent_rounds": args.latent_rounds,
+                    "visibility": args.photo_visibility,
+                    "share": args.photo_share,
                 })),
                 "backgrounds": args.backgrounds.display().to_string(),
                 "negatives": negatives.len(),

@@ -145,7 +145,33 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 .sources
                 .clone()
                 .unwrap_or_else(|| vec![Source::Single, Source::Boxes]);
-            let params = params_for(&params, &sources, args.settings.threshold.is_some());
+            let mut params = params_for(&params, &sources, args.settings.threshold.is_some());
+            let st = &args.settings;
+            let scales_set = st.config.is_some()
+                || st.template_scale.is_some()
+                || st.template.is_some()
+                || st.levels_per_octave.is_some()
+                || st.min_scale.is_some()
+                || st.max_scale.is_some();
+            if !scales_set {
+                let sizes: Vec<(f64, f64)> = loaded
+                    .samples
+                    .iter()
+                    .filter_map(|s| s.annotation.as_ref())
+                    .map(|a| (a.bbox.2, a.bbox.3))
+                    .collect();
+                if let Some(p) = crate::train::small_object_scales(&sizes, &params) {
+                    eprintln!(
+                        "{cat}: small objects: template scale {:.2} (about {} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave",
+                        p.template_scale,
+                        crate::train::SMALL_OBJECT_CELLS,
+                        p.pyramid.min_scale,
+                        p.pyramid.max_scale,
+                        p.pyramid.levels_per_octave
+                    );
+                    params = p;
+                }
+            }
             let r = train_coco(
                 cat,
                 loaded.samples,

@@ -46,6 +46,9 @@ struct CocoAnnotation {
     segmentation: serde_json::Value,
     #[serde(default)]
     viewpoint: Option<usize>,
+    /// COCO's "ignore" flag (1: a region neither positive nor negative).
+    #[serde(default)]
+    iscrowd: u8,
 }
 
 /// Decodes COCO's compressed RLE string (the LEB128-like text of
@@ -159,7 +162,9 @@ pub fn box_mask(b: (f64, f64, f64, f64), width: usize, height: usize) -> Mask {
 
 /// Reads a COCO-style JSON file for one category: images with an annotation
 /// of `category` are positives (the first annotation per image; further ones
-/// are reported as skipped), every other image is a negative. Image paths are
+/// are reported as skipped), every other image is a negative, except images
+/// whose only annotations of `category` are `iscrowd` (ignored regions:
+/// neither positive nor negative, reported as skipped). Image paths are
 /// relative to `image_dir`.
 pub fn load_coco(json: &Path, image_dir: &Path, category: &str) -> Result<Loaded, DatasetError> {
     let text = std::fs::read_to_string(json).map_err(|source| DatasetError::Io {
@@ -192,7 +197,7 @@ pub fn load_coco(json: &Path, image_dir: &Path, category: &str) -> Result<Loaded
                 .push(format!("{}: missing image file", path.display()));
             continue;
         }
-        let Some(anns) = by_image.get(&img.id) else {
+        let Some(all) = by_image.get(&img.id) else {
             out.samples.push(Sample {
                 image: path,
                 id,
@@ -200,6 +205,14 @@ pub fn load_coco(json: &Path, image_dir: &Path, category: &str) -> Result<Loaded
             });
             continue;
         };
+        let anns: Vec<&CocoAnnotation> = all.iter().copied().filter(|a| a.iscrowd == 0).collect();
+        if anns.is_empty() {
+            out.skipped.push(format!(
+                "{}: only ignored (iscrowd) {category}: neither a positive nor a negative",
+                path.display()
+            ));
+            continue;
+        }
         for extra in &anns[1..] {
             out.skipped.push(format!(
                 "{}: more than one {category} (only the first is used; bbox {:?})",
@@ -295,7 +308,7 @@ mod tests {
     fn coco_reader_keeps_good_annotations_and_reports_bad_ones() {
         let dir = std::env::temp_dir().join(format!("sdhop-coco-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        for name in ["a.png", "b.png", "c.png", "neg.png"] {
+        for name in ["a.png", "b.png", "c.png", "neg.png", "crowd.png"] {
             image::RgbImage::new(40, 30).save(dir.join(name)).unwrap();
         }
         let json = serde_json::json!({
@@ -304,7 +317,8 @@ mod tests {
                 {"id": 2, "file_name": "b.png", "width": 40, "height": 30},
                 {"id": 3, "file_name": "c.png", "width": 40, "height": 30},
                 {"id": 4, "file_name": "missing.png", "width": 40, "height": 30},
-                {"id": 5, "file_name": "neg.png", "width": 40, "height": 30}
+                {"id": 5, "file_name": "neg.png", "width": 40, "height": 30},
+                {"id": 6, "file_name": "crowd.png", "width": 40, "height": 30}
             ],
             "categories": [{"id": 7, "name": "mug"}],
             "annotations": [
@@ -315,7 +329,9 @@ mod tests {
                 {"image_id": 3, "category_id": 7, "bbox": [5, 5, 20, 15],
                  "segmentation": {"size": [30, 40], "counts": [1200]}},
                 {"image_id": 4, "category_id": 7, "bbox": [5, 5, 20, 15],
-                 "segmentation": [[5, 5, 25, 5, 25, 20, 5, 20]]}
+                 "segmentation": [[5, 5, 25, 5, 25, 20, 5, 20]]},
+                {"image_id": 6, "category_id": 7, "bbox": [5, 5, 20, 15], "iscrowd": 1},
+                {"image_id": 1, "category_id": 7, "bbox": [1, 1, 3, 3], "iscrowd": 1}
             ]
         });
         let path = dir.join("ann.json");
@@ -330,7 +346,14 @@ mod tests {
         let a = positives[0].annotation.as_ref().unwrap();
         assert_eq!((a.viewpoint, a.visible.area()), (1, 20 * 15));
         assert_eq!(loaded.samples.len(), 2, "one positive and one negative");
-        assert_eq!(loaded.skipped.len(), 3, "{:?}", loaded.skipped);
+        assert_eq!(loaded.skipped.len(), 4, "{:?}", loaded.skipped);
+        // An image with only an ignored instance is neither a positive nor
+        // a negative; an ignored instance beside a real one changes nothing.
+        assert!(loaded
+            .skipped
+            .iter()
+            .any(|m| m.contains("crowd.png") && m.contains("iscrowd")));
+        assert!(!loaded.samples.iter().any(|s| s.id == "crowd"));
         assert!(loaded
             .skipped
             .iter()

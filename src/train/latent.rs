@@ -67,6 +67,28 @@ pub fn impute(det: &Detector, pyr: &FeaturePyramid, locations: &[Location]) -> O
     })
 }
 
+/// The least-energy location among `locations` with every cell visible
+/// (the box's component only is latent); `None` when there is none.
+pub fn impute_visible(
+    det: &Detector,
+    pyr: &FeaturePyramid,
+    locations: &[Location],
+) -> Option<Imputed> {
+    locations
+        .iter()
+        .map(|l| {
+            let (problem, _, _) = det.problem_at(pyr, l);
+            let cells = vec![true; problem.len()];
+            let energy = problem.energy(&cells);
+            Imputed {
+                location: *l,
+                cells,
+                energy,
+            }
+        })
+        .min_by(|a, b| a.energy.total_cmp(&b.energy))
+}
+
 /// Figures of one imputation round.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct ImputeRound {
@@ -83,7 +105,9 @@ pub struct ImputeRound {
 
 /// Imputes every box-only sample's component and visible mask under
 /// `model` (its components labelled `label`, from `first_component` on),
-/// in place; samples with a known mask are left alone.
+/// in place; samples with a known mask are left alone. Without
+/// `latent_visibility` only the component is imputed and the whole box
+/// stays visible.
 pub fn impute_samples(
     model: &Model,
     label: &str,
@@ -91,6 +115,7 @@ pub fn impute_samples(
     samples: &mut [Sample],
     cache: &PyramidCache,
     min_iou: f64,
+    latent_visibility: bool,
 ) -> Result<ImputeRound, TrainError> {
     use rayon::prelude::*;
     let det = Detector::new(&model.views)?;
@@ -109,14 +134,20 @@ pub fn impute_samples(
             let a = s.annotation.as_ref().filter(|a| !a.mask_known)?;
             let pyr: Arc<FeaturePyramid> = cache.get(&s.image)?;
             let locs = box_locations(&det, &pyr, a.bbox, &views, max_trunc, min_iou);
-            let imp = impute(&det, &pyr, &locs)?;
+            let imp = if latent_visibility {
+                impute(&det, &pyr, &locs)?
+            } else {
+                impute_visible(&det, &pyr, &locs)?
+            };
             let grid = det.grid(&pyr, &imp.location);
             let cells = raw_mask(&grid, &imp.cells, pyr.image_width, pyr.image_height);
             // Visible: the imputed visible cells within the true box.
             let within = box_mask(a.bbox, pyr.image_width, pyr.image_height);
             let mut visible = within.clone();
-            for (v, c) in visible.data.iter_mut().zip(&cells.data) {
-                *v &= *c;
+            if latent_visibility {
+                for (v, c) in visible.data.iter_mut().zip(&cells.data) {
+                    *v &= *c;
+                }
             }
             let share =
                 imp.cells.iter().filter(|&&c| c).count() as f64 / imp.cells.len().max(1) as f64;
@@ -167,6 +198,148 @@ mod tests {
     use crate::vision::pyramid::PyramidParams;
     use crate::vision::rng::SplitMix64;
     use crate::vision::segment::SegmentParams;
+    use std::path::PathBuf;
+
+    /// A 96x80 image of noise with a 32x32 block of stripes at (x, y):
+    /// vertical or horizontal, 4 px wide.
+    fn striped(vertical: bool, x0: usize, y0: usize, seed: u64) -> (ColorImage, Mask) {
+        let (w, h) = (96, 80);
+        let mut rng = SplitMix64::new(seed);
+        let mut data = vec![0.0f32; w * h * 3];
+        let mut mask = Mask::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let inside = (x0..x0 + 32).contains(&x) && (y0..y0 + 32).contains(&y);
+                let v = if inside {
+                    mask.set(x, y, true);
+                    let t = if vertical { x - x0 } else { y - y0 };
+                    if (t / 4) % 2 == 0 {
+                        220.0
+                    } else {
+                        40.0
+                    }
+                } else {
+                    rng.range_f64(100.0, 150.0)
+                };
+                for c in 0..3 {
+                    data[(y * w + x) * 3 + c] = v as f32;
+                }
+            }
+        }
+        (ColorImage::new(w, h, data).unwrap(), mask)
+    }
+
+    /// The component latent: a model trained on masked photographs of two
+    /// kinds of the same size (vertical stripes: component 0, horizontal:
+    /// component 1) assigns each box-only photograph, started in component
+    /// 0, to the component of its kind, wherever the box lies.
+    #[test]
+    fn boxes_are_assigned_the_component_of_their_kind() {
+        use crate::data::{box_mask, Annotation};
+        use crate::train::{train_joint, TrainParams};
+        let params = TrainParams {
+            template: Some([4, 4]),
+            pyramid: PyramidParams {
+                levels_per_octave: 2,
+                min_scale: 0.7,
+                max_scale: 1.0,
+            },
+            max_passes: 3,
+            ..TrainParams::default()
+        };
+        let cache = PyramidCache::default();
+        let add = |name: String, img: &ColorImage| {
+            let pyr = FeaturePyramid::build(img, &params.pyramid, &params.segmentation).unwrap();
+            cache.insert(PathBuf::from(&name), pyr);
+            PathBuf::from(name)
+        };
+        let mut known = Vec::new();
+        for i in 0..8u64 {
+            let vertical = i % 2 == 0;
+            let (x, y) = (8 + 6 * i as usize, 10 + 4 * (i as usize % 3));
+            let (img, mask) = striped(vertical, x, y, i);
+            known.push(Sample {
+                image: add(format!("known{i}"), &img),
+                id: format!("known{i}"),
+                annotation: Some(Annotation {
+                    label: "block".into(),
+                    bbox: (x as f64, y as f64, 32.0, 32.0),
+                    visible: mask,
+                    viewpoint: usize::from(!vertical),
+                    mask_known: true,
+                }),
+            });
+        }
+        for i in 0..6u64 {
+            let mut rng = SplitMix64::new(50 + i);
+            let data: Vec<f32> = (0..96 * 80 * 3)
+                .map(|_| rng.range_f64(60.0, 190.0) as f32)
+                .collect();
+            let img = ColorImage::new(96, 80, data).unwrap();
+            known.push(Sample::negative(add(format!("negative{i}"), &img)));
+        }
+        let refs: Vec<&Sample> = known.iter().collect();
+        let (model, _) = train_joint(
+            "block",
+            &["block"],
+            &refs,
+            &cache,
+            &params,
+            &indicatif::ProgressBar::hidden(),
+        )
+        .unwrap();
+        assert_eq!(model.meta.viewpoints.len(), 2);
+        // Box-only photographs of both kinds at other places, all started
+        // in component 0.
+        let mut boxes = Vec::new();
+        let mut kinds = Vec::new();
+        for i in 0..6u64 {
+            let vertical = i % 3 == 0;
+            let (x, y) = (56 - 7 * i as usize, 40 - 5 * (i as usize % 4));
+            let (img, _) = striped(vertical, x, y, 100 + i);
+            let bbox = (x as f64, y as f64, 32.0, 32.0);
+            boxes.push(Sample {
+                image: add(format!("box{i}"), &img),
+                id: format!("box{i}"),
+                annotation: Some(Annotation {
+                    label: "block".into(),
+                    bbox,
+                    visible: box_mask(bbox, 96, 80),
+                    viewpoint: 0,
+                    mask_known: false,
+                }),
+            });
+            kinds.push(usize::from(!vertical));
+        }
+        for latent_visibility in [false, true] {
+            let mut imputed = boxes.clone();
+            let round = impute_samples(
+                &model,
+                "block",
+                0,
+                &mut imputed,
+                &cache,
+                0.6,
+                latent_visibility,
+            )
+            .unwrap();
+            assert_eq!((round.boxes, round.unfit), (6, 0));
+            let got: Vec<usize> = imputed
+                .iter()
+                .map(|s| s.annotation.as_ref().unwrap().viewpoint)
+                .collect();
+            assert_eq!(got, kinds, "latent visibility {latent_visibility}");
+            // Four horizontal boxes moved from component 0.
+            assert_eq!(round.component_changes, 4);
+            if !latent_visibility {
+                // The whole box stays visible.
+                for s in &imputed {
+                    let a = s.annotation.as_ref().unwrap();
+                    assert_eq!(a.visible.area(), 32 * 32);
+                }
+            }
+        }
+    }
 
     /// Imputation is exact: on a 2x3 template, its energy equals the least
     /// energy over every location and every one of the 64 labellings.

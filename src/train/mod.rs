@@ -117,6 +117,11 @@ pub struct TrainParams {
     /// Share of the objective carried by the positive images (the negatives
     /// carry the rest).
     pub positive_share: f64,
+    /// Share of the positives' weight carried by the box-only positives
+    /// (photographs whose visibility training imputes) when there are also
+    /// positives with known masks (renders, masked photographs); `None`:
+    /// every positive weighs the same.
+    pub box_share: Option<f64>,
     pub loss: LossKind,
     /// Weight of the loss's visibility (Hamming) term against its box
     /// term (1: eq. (3) of the paper).
@@ -161,6 +166,7 @@ impl Default for TrainParams {
             mining_budget: 300,
             cache_size: 12,
             positive_share: 0.5,
+            box_share: None,
             loss: LossKind::SdHop,
             seg_weight: 1.0,
             hop: true,
@@ -197,6 +203,12 @@ impl TrainParams {
         }
         if !(0.0..=1.0).contains(&self.positive_share) {
             return bad("positive_share must be in [0, 1]".into());
+        }
+        if self
+            .box_share
+            .is_some_and(|b| !(0.0..1.0).contains(&b) || b == 0.0)
+        {
+            return bad("box_share must be in (0, 1)".into());
         }
         if !(0.0..1.0).contains(&self.max_truncation) || !self.threshold.is_finite() {
             return bad("max_truncation must be in [0, 1) and the threshold finite".into());
@@ -368,6 +380,8 @@ pub fn train_joint(
         (1.0 - params.positive_share) / negatives.len() as f64
     };
     let mut examples: Vec<Example> = Vec::new();
+    // Whether each example is a box-only positive.
+    let mut box_only: Vec<bool> = Vec::new();
     for s in positives.iter().chain(&negatives) {
         let pyr = cache
             .get(&s.image)
@@ -444,6 +458,7 @@ pub fn train_joint(
             seeds.insert(0, t.location);
         }
         let weight = if truth.is_some() { pos_w } else { neg_w };
+        box_only.push(truth.is_some() && ann.is_some_and(|a| !a.mask_known));
         examples.push(Example {
             pyr,
             weight,
@@ -458,11 +473,27 @@ pub fn train_joint(
             "no usable positive image of {label}"
         )));
     }
-    // Re-weight in case positives were skipped.
-    let pos_w = params.positive_share / report.positives as f64;
-    for e in &mut examples {
+    // Re-weight in case positives were skipped; box-only positives carry
+    // `box_share` of the positives' weight where there are both kinds.
+    let n_box = examples
+        .iter()
+        .zip(&box_only)
+        .filter(|(e, &b)| b && e.truth.is_some())
+        .count();
+    let n_known = report.positives - n_box;
+    let (known_w, box_w) = match params.box_share {
+        Some(share) if n_box > 0 && n_known > 0 => (
+            params.positive_share * (1.0 - share) / n_known as f64,
+            params.positive_share * share / n_box as f64,
+        ),
+        _ => {
+            let w = params.positive_share / report.positives as f64;
+            (w, w)
+        }
+    };
+    for (e, &b) in examples.iter_mut().zip(&box_only) {
         if e.truth.is_some() {
-            e.weight = pos_w;
+            e.weight = if b { box_w } else { known_w };
         }
     }
 
@@ -674,6 +705,50 @@ fn template_shape(
     Ok((rows, cols))
 }
 
+/// Cells of a small object's template along its longer side (see
+/// [`small_object_scales`]); the mesh route's templates come out about as
+/// large.
+pub const SMALL_OBJECT_CELLS: f64 = 12.0;
+
+/// Below this many cells along the longer side (at the default template
+/// scale) a template is too coarse to tell an object (LM-O's 40-100 px
+/// objects came out 5x5 and found nothing).
+pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
+
+/// Template scale and pyramid for small objects: when the median box of
+/// `sizes` (`(width, height)` in pixels) would make a template under
+/// [`SMALL_TEMPLATE_CELLS`] at `params`' template scale, the template is
+/// scaled up to [`SMALL_OBJECT_CELLS`] along its longer side, and the
+/// pyramid upsamples far enough that the smallest box is seen at the
+/// template's size (up to 4x) and goes down to a quarter of the template
+/// scale (objects four times the median), at 5 levels per octave;
+/// `None`: the boxes are large enough for `params` as they are.
+pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option<TrainParams> {
+    let mut longer: Vec<f64> = sizes
+        .iter()
+        .map(|&(w, h)| w.max(h))
+        .filter(|l| l.is_finite() && *l > 0.0)
+        .collect();
+    if longer.is_empty() || params.template.is_some() {
+        return None;
+    }
+    longer.sort_by(f64::total_cmp);
+    let median = longer[longer.len() / 2];
+    let smallest = longer[0];
+    let cells = median * params.template_scale / CELL_SIZE as f64;
+    if cells >= SMALL_TEMPLATE_CELLS {
+        return None;
+    }
+    let scale = (SMALL_OBJECT_CELLS * CELL_SIZE as f64 / median).min(4.0);
+    let max_scale = (scale * median / smallest).clamp(scale, 4.0);
+    let mut out = params.clone();
+    out.template_scale = scale;
+    out.pyramid.max_scale = max_scale as f32;
+    out.pyramid.min_scale = ((scale / 4.0) as f32).min(out.pyramid.min_scale);
+    out.pyramid.levels_per_octave = 5;
+    Some(out)
+}
+
 /// A progress bar in the style used across the CLI (hidden when not a TTY).
 pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(len);
@@ -684,4 +759,42 @@ pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
     }
     pb.set_message(what.to_string());
     pb
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn small_boxes_get_larger_templates_and_upsampled_levels() {
+        let params = TrainParams::default();
+        // LM-O's ape: 37-84 px tall, median about 51: 5 cells at 0.8.
+        let sizes: Vec<(f64, f64)> = (0..21)
+            .map(|i| (35.0 + i as f64, 37.0 + 2.0 * i as f64))
+            .collect();
+        let p = small_object_scales(&sizes, &params).expect("small objects");
+        let median = 57.0;
+        assert!((p.template_scale - 12.0 * 8.0 / median).abs() < 1e-9);
+        // The smallest box is seen at the template's size.
+        let expect_max = p.template_scale * median / 37.0;
+        assert!((f64::from(p.pyramid.max_scale) - expect_max).abs() < 1e-5);
+        assert!(p.pyramid.max_scale > 1.0);
+        assert!(f64::from(p.pyramid.min_scale) <= p.template_scale / 4.0 + 1e-6);
+        assert_eq!(p.pyramid.levels_per_octave, 5);
+        p.validate().unwrap();
+        // Large objects keep the settings they have.
+        let big: Vec<(f64, f64)> = sizes.iter().map(|&(w, h)| (4.0 * w, 4.0 * h)).collect();
+        assert!(small_object_scales(&big, &params).is_none());
+        // So does a fixed template size, or no box at all.
+        let fixed = TrainParams {
+            template: Some([6, 6]),
+            ..params.clone()
+        };
+        assert!(small_object_scales(&sizes, &fixed).is_none());
+        assert!(small_object_scales(&[], &params).is_none());
+        // Tiny boxes cap the scales at 4.
+        let p = small_object_scales(&[(10.0, 12.0), (20.0, 22.0), (24.0, 24.0)], &params).unwrap();
+        assert!(p.template_scale <= 4.0 && p.pyramid.max_scale <= 4.0);
+        p.validate().unwrap();
+    }
 }

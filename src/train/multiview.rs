@@ -44,6 +44,9 @@ pub struct MultiViewParams {
     pub latent_rounds: usize,
     /// Least box overlap of an imputed location with the true box.
     pub min_iou: f64,
+    /// Whether a box's visible cells are imputed (latent) or the whole box
+    /// is taken as visible (only its component is imputed).
+    pub latent_visibility: bool,
 }
 
 impl Default for MultiViewParams {
@@ -58,6 +61,7 @@ impl Default for MultiViewParams {
             augment: AugmentParams::default(),
             latent_rounds: 2,
             min_iou: 0.6,
+            latent_visibility: true,
         }
     }
 }
@@ -352,7 +356,15 @@ pub fn train_sources(
     let first = if src.views.is_empty() { 0 } else { offset };
     if !boxes.is_empty() {
         for _ in 0..mv.latent_rounds {
-            let round = impute_samples(&model, label, first, &mut boxes, cache, mv.min_iou)?;
+            let round = impute_samples(
+                &model,
+                label,
+                first,
+                &mut boxes,
+                cache,
+                mv.min_iou,
+                mv.latent_visibility,
+            )?;
             progress.set_message(format!(
                 "{label}: imputed {} boxes, {} component changes, {:.2} visible",
                 round.boxes, round.component_changes, round.mean_visible
