@@ -101,6 +101,10 @@ pub(crate) struct TrainArgs {
 /// -1.0, the same at -1.25).
 const VIEWS_THRESHOLD: f64 = -1.0;
 
+/// Full searches at most when [`crate::train::small_object_scales`]
+/// applies (unless `--max-passes` says otherwise).
+const SMALL_OBJECT_PASSES: usize = 15;
+
 /// `params` with the threshold of `sources` unless one was given (by
 /// `--threshold`, or a `--config` file that changes it).
 fn params_for(params: &TrainParams, sources: &[Source], flag: bool) -> TrainParams {
@@ -160,14 +164,22 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                     .filter_map(|s| s.annotation.as_ref())
                     .map(|a| (a.bbox.2, a.bbox.3))
                     .collect();
-                if let Some(p) = crate::train::small_object_scales(&sizes, &params) {
+                if let Some(mut p) = crate::train::small_object_scales(&sizes, &params) {
+                    // Few, small photographs: training to convergence pays
+                    // (LM-O duck, 45 photographs with true masks: 5 passes
+                    // AUC 0.256, segmentation error 0.688; converged after
+                    // 13, 0.271 and 0.426; 93 s against 155 s).
+                    if st.max_passes.is_none() {
+                        p.max_passes = SMALL_OBJECT_PASSES;
+                    }
                     eprintln!(
-                        "{cat}: small objects: template scale {:.2} (about {} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave",
+                        "{cat}: small objects: template scale {:.2} (about {} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
                         p.template_scale,
                         crate::train::SMALL_OBJECT_CELLS,
                         p.pyramid.min_scale,
                         p.pyramid.max_scale,
-                        p.pyramid.levels_per_octave
+                        p.pyramid.levels_per_octave,
+                        p.max_passes
                     );
                     params = p;
                 }
