@@ -710,33 +710,37 @@ fn template_shape(
 /// large.
 pub const SMALL_OBJECT_CELLS: f64 = 12.0;
 
-/// Below this many cells along the longer side (at the default template
-/// scale) a template is too coarse to tell an object (LM-O's 40-100 px
-/// objects came out 5x5 and found nothing).
+/// Below this many cells on the side of a square of the median box's area
+/// (at the default template scale) a template is too coarse to tell an
+/// object (LM-O's 40-100 px objects came out 5x5 and found nothing; the
+/// glue, 41x82 px, 4x8).
 pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
 
 /// Template scale and pyramid for small objects: when the median box of
-/// `sizes` (`(width, height)` in pixels) would make a template under
-/// [`SMALL_TEMPLATE_CELLS`] at `params`' template scale, the template is
-/// scaled up to [`SMALL_OBJECT_CELLS`] along its longer side, and the
+/// `sizes` (`(width, height)` in pixels) would make a template of under
+/// [`SMALL_TEMPLATE_CELLS`] (on the side of a square of its area) at
+/// `params`' template scale, the template is scaled up to
+/// [`SMALL_OBJECT_CELLS`] along the median box's longer side, and the
 /// pyramid upsamples far enough that the smallest box is seen at the
 /// template's size (up to 4x) and goes down to a quarter of the template
 /// scale (objects four times the median), at 5 levels per octave;
 /// `None`: the boxes are large enough for `params` as they are.
 pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option<TrainParams> {
-    let mut longer: Vec<f64> = sizes
+    let good: Vec<(f64, f64)> = sizes
         .iter()
-        .map(|&(w, h)| w.max(h))
-        .filter(|l| l.is_finite() && *l > 0.0)
+        .copied()
+        .filter(|&(w, h)| w.is_finite() && h.is_finite() && w > 0.0 && h > 0.0)
         .collect();
-    if longer.is_empty() || params.template.is_some() {
+    if good.is_empty() || params.template.is_some() {
         return None;
     }
-    longer.sort_by(f64::total_cmp);
-    let median = longer[longer.len() / 2];
-    let smallest = longer[0];
-    let cells = median * params.template_scale / CELL_SIZE as f64;
-    if cells >= SMALL_TEMPLATE_CELLS {
+    let median_of = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        (v[v.len() / 2], v[0])
+    };
+    let (side, _) = median_of(good.iter().map(|&(w, h)| (w * h).sqrt()).collect());
+    let (median, smallest) = median_of(good.iter().map(|&(w, h)| w.max(h)).collect());
+    if side * params.template_scale / CELL_SIZE as f64 >= SMALL_TEMPLATE_CELLS {
         return None;
     }
     let scale = (SMALL_OBJECT_CELLS * CELL_SIZE as f64 / median).min(4.0);
@@ -782,6 +786,12 @@ mod tests {
         assert!(f64::from(p.pyramid.min_scale) <= p.template_scale / 4.0 + 1e-6);
         assert_eq!(p.pyramid.levels_per_octave, 5);
         p.validate().unwrap();
+        // A narrow object (LM-O's glue, 41x82 px): small by its area.
+        let narrow: Vec<(f64, f64)> = (0..9)
+            .map(|i| (37.0 + i as f64, 74.0 + 2.0 * i as f64))
+            .collect();
+        let p = small_object_scales(&narrow, &params).expect("narrow small objects");
+        assert!((p.template_scale - 12.0 * 8.0 / 82.0).abs() < 1e-9);
         // Large objects keep the settings they have.
         let big: Vec<(f64, f64)> = sizes.iter().map(|&(w, h)| (4.0 * w, 4.0 * h)).collect();
         assert!(small_object_scales(&big, &params).is_none());
