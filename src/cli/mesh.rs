@@ -367,6 +367,8 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     if args.settings.config.is_none() {
         params.max_truncation = 0.0;
     }
+    // With `--photos`: the boxes' share of the positives' weight.
+    params.box_share = args.photo_share;
     params.validate().map_err(Failure::input)?;
     let render = RenderParams {
         renders: args.renders,
@@ -573,11 +575,6 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             backgrounds: Vec::new(),
             boxes: photos.boxes.clone(),
         };
-        let params = TrainParams {
-            box_share: args.photo_share,
-            ..params.clone()
-        };
-        params.validate().map_err(Failure::input)?;
         let mv = MultiViewParams {
             latent_rounds: args.latent_rounds,
             latent_visibility: args.photo_visibility == PhotoVisibility::Latent,
