@@ -24,12 +24,19 @@ use crate::pose::Mesh;
 #[derive(clap::Args)]
 pub(crate) struct BopEvalArgs {
     /// BOP dataset root (models/ and test/SCENE/), e.g. ../shared/data/lmo_dev.
-    #[arg(long)]
-    pub(crate) data: PathBuf,
+    #[arg(long, required_unless_present = "merge")]
+    pub(crate) data: Option<PathBuf>,
     /// Folder of the detectors to evaluate; their labels are BOP object
     /// names (ape, can, cat, ...).
-    #[arg(long)]
-    pub(crate) models_dir: PathBuf,
+    #[arg(long, required_unless_present = "merge")]
+    pub(crate) models_dir: Option<PathBuf>,
+    /// Instead of scoring: join the reports of earlier runs into one table,
+    /// report and plot, as NAME=REPORT.json (repeat it). Each report's
+    /// first variant goes into the row NAME, and the reports given the
+    /// same NAME are joined object by object: e.g. one run per object and
+    /// training route, each with its own model only.
+    #[arg(long = "merge", value_parser = parse_named_dir, conflicts_with_all = ["data", "models_dir", "compare", "pose", "transfer"])]
+    pub(crate) merge: Vec<(String, PathBuf)>,
     /// Further folders scored the same way, as NAME=DIR (e.g.
     /// plain-hog=out/plain): ablations trained on the same renders.
     #[arg(long = "compare", value_parser = parse_named_dir)]
@@ -74,7 +81,7 @@ fn parse_named_dir(text: &str) -> Result<(String, PathBuf), String> {
 }
 
 /// Pose from no start of one instance.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 struct PoseOutcome {
     object: String,
     image: u32,
@@ -91,7 +98,7 @@ struct PoseOutcome {
 }
 
 /// One variant's figures.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 struct Variant {
     name: String,
     models_dir: String,
@@ -101,7 +108,7 @@ struct Variant {
     mean_seg_error_raw: f64,
     mean_recall_at_1fppi: f64,
     detect_ms_per_image: f64,
-    #[serde(skip_serializing_if = "Vec::is_empty")]
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pose: Vec<PoseOutcome>,
 }
 
@@ -337,10 +344,18 @@ fn print_variant(v: &Variant) {
 }
 
 pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
+    if !args.merge.is_empty() {
+        return merge_reports(&args.merge, &args.out);
+    }
     if args.every == 0 {
         return Err(Failure::input("--every must be at least 1"));
     }
-    let bop = Bop::load(&args.data).map_err(Failure::input)?;
+    let (Some(data), Some(models_dir)) = (&args.data, &args.models_dir) else {
+        return Err(Failure::input(
+            "--data and --models-dir are needed to score",
+        ));
+    };
+    let bop = Bop::load(data).map_err(Failure::input)?;
     if bop
         .images
         .iter()
@@ -348,7 +363,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
     {
         return Err(Failure::input(format!(
             "{}: scene_gt_info.json carries no bbox_obj: nothing to score against",
-            args.data.display()
+            data.display()
         )));
     }
     // Photographs by image id (scene by scene), those that trained
@@ -359,7 +374,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
         return Err(Failure::input(format!(
             "--train-photos {}: {} has only {} photographs, none left to score",
             args.train_photos,
-            args.data.display(),
+            data.display(),
             order.len()
         )));
     }
@@ -385,20 +400,13 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
         }
     }
     let mut variants = vec![evaluate(
-        "sdhop",
-        &args.models_dir,
-        &bop,
-        &images,
-        args,
-        args.pose,
-        false,
-        &meshes,
+        "sdhop", models_dir, &bop, &images, args, args.pose, false, &meshes,
     )?];
     print_variant(&variants[0]);
     if args.transfer {
         let v = evaluate(
             "sdhop+transfer",
-            &args.models_dir,
+            models_dir,
             &bop,
             &images,
             args,
@@ -414,23 +422,27 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
         print_variant(&v);
         variants.push(v);
     }
-    std::fs::create_dir_all(&args.out)
-        .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
-    let report = args.out.join("report.json");
     let json = serde_json::json!({
-        "data": args.data.display().to_string(),
+        "data": data.display().to_string(),
         "images": images.len(),
         "train_photos": args.train_photos,
         "threshold": args.threshold,
         "max_detections": args.max_detections,
         "variants": variants,
     });
+    write_report(&json, &variants, &args.out)
+}
+
+/// `report.json` and `recall_fppi.png` of `variants` in `out`.
+fn write_report(json: &serde_json::Value, variants: &[Variant], out: &Path) -> Result<(), Failure> {
+    std::fs::create_dir_all(out).map_err(|e| Failure::io(format!("{}: {e}", out.display())))?;
+    let report = out.join("report.json");
     std::fs::write(
         &report,
         serde_json::to_string_pretty(&json).map_err(Failure::io)?,
     )
     .map_err(|e| Failure::io(format!("{}: {e}", report.display())))?;
-    let plot = args.out.join("recall_fppi.png");
+    let plot = out.join("recall_fppi.png");
     let curves: Vec<crate::eval::plot::VariantCurves> = variants
         .iter()
         .map(|v| {
@@ -446,4 +458,150 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
     crate::eval::plot::variants_png(&curves, &plot).map_err(Failure::io)?;
     println!("report {}, plot {}", report.display(), plot.display());
     Ok(())
+}
+
+/// `--merge`: the first variant of each report, joined by row name.
+fn merge_reports(inputs: &[(String, PathBuf)], out: &Path) -> Result<(), Failure> {
+    let mut rows: Vec<Variant> = Vec::new();
+    let mut sources = Vec::new();
+    for (name, file) in inputs {
+        let text = std::fs::read_to_string(file)
+            .map_err(|e| Failure::io(format!("{}: {e}", file.display())))?;
+        let report: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+        let first = report
+            .get("variants")
+            .and_then(|v| v.get(0))
+            .cloned()
+            .ok_or_else(|| {
+                Failure::input(format!(
+                    "{}: no variants: not a bop-eval report",
+                    file.display()
+                ))
+            })?;
+        let v: Variant = serde_json::from_value(first)
+            .map_err(|e| Failure::input(format!("{}: {e}", file.display())))?;
+        sources.push(serde_json::json!({
+            "row": name,
+            "report": file.display().to_string(),
+            "images": report.get("images"),
+            "train_photos": report.get("train_photos"),
+        }));
+        match rows.iter_mut().find(|r| &r.name == name) {
+            None => rows.push(Variant {
+                name: name.clone(),
+                ..v
+            }),
+            Some(row) => {
+                if let Some(o) = v
+                    .objects
+                    .iter()
+                    .find(|o| row.objects.iter().any(|r| r.object == o.object))
+                {
+                    return Err(Failure::input(format!(
+                        "{}: {} is already in row {name}",
+                        file.display(),
+                        o.object
+                    )));
+                }
+                let n = (row.objects.len() + v.objects.len()).max(1) as f64;
+                let (a, b) = (row.objects.len() as f64, v.objects.len() as f64);
+                row.detect_ms_per_image =
+                    (row.detect_ms_per_image * a + v.detect_ms_per_image * b) / n;
+                row.models_dir = format!("{}, {}", row.models_dir, v.models_dir);
+                row.objects.extend(v.objects);
+                row.pose.extend(v.pose);
+            }
+        }
+    }
+    for row in &mut rows {
+        row.objects.sort_by_key(|a| a.obj_id);
+        let n = row.objects.len().max(1) as f64;
+        let mean = |f: &dyn Fn(&DetectScore) -> f64| row.objects.iter().map(f).sum::<f64>() / n;
+        row.mean_auc = mean(&|s| s.auc);
+        row.mean_seg_error = mean(&|s| s.seg_error);
+        row.mean_seg_error_raw = mean(&|s| s.seg_error_raw);
+        row.mean_recall_at_1fppi = mean(&|s| s.recall_at_1fppi);
+    }
+    for row in &rows {
+        print_variant(row);
+    }
+    let json = serde_json::json!({"merged": sources, "variants": rows});
+    write_report(&json, &rows, out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn report(objects: &[(&str, u32, f64)]) -> serde_json::Value {
+        let objects: Vec<DetectScore> = objects
+            .iter()
+            .map(|&(o, id, auc)| DetectScore {
+                object: o.into(),
+                obj_id: id,
+                auc,
+                recall_at_1fppi: auc,
+                positives: 10,
+                seg_error: 0.5,
+                seg_error_raw: 0.6,
+                seg_instances: 5,
+                curve: vec![(0.0, 0.0), (0.5, auc)],
+            })
+            .collect();
+        serde_json::json!({"images": 150, "train_photos": 50, "variants": [{
+            "name": "sdhop", "models_dir": "m", "objects": objects, "mean_auc": 0.0,
+            "mean_seg_error": 0.0, "mean_seg_error_raw": 0.0,
+            "mean_recall_at_1fppi": 0.0, "detect_ms_per_image": 100.0
+        }]})
+    }
+
+    /// Per-object reports join into rows by name with their means
+    /// recomputed; an object twice in a row and a file that is not a
+    /// report are refused, naming the file.
+    #[test]
+    fn merge_joins_reports_into_rows() {
+        let dir = std::env::temp_dir().join(format!("sdhop-merge-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let write = |name: &str, v: serde_json::Value| {
+            let p = dir.join(name);
+            std::fs::write(&p, v.to_string()).unwrap();
+            p
+        };
+        let cat = write("cat.json", report(&[("cat", 6, 0.4)]));
+        let ape = write("ape.json", report(&[("ape", 1, 0.2)]));
+        let both = write("both.json", report(&[("ape", 1, 0.1), ("cat", 6, 0.3)]));
+        let out = dir.join("rows");
+        let inputs = vec![
+            ("photos".to_string(), cat.clone()),
+            ("photos".to_string(), ape.clone()),
+            ("mesh".to_string(), both),
+        ];
+        merge_reports(&inputs, &out).unwrap();
+        let merged: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        let rows = merged["variants"].as_array().unwrap();
+        assert_eq!(rows.len(), 2);
+        assert_eq!(rows[0]["name"], "photos");
+        assert_eq!(rows[0]["objects"][0]["object"], "ape");
+        assert!((rows[0]["mean_auc"].as_f64().unwrap() - 0.3).abs() < 1e-12);
+        assert!((rows[1]["mean_auc"].as_f64().unwrap() - 0.2).abs() < 1e-12);
+        assert!(out.join("recall_fppi.png").exists());
+        let twice = vec![
+            ("photos".to_string(), cat.clone()),
+            ("photos".to_string(), cat),
+        ];
+        let e = merge_reports(&twice, &out).unwrap_err().message;
+        assert!(e.contains("cat is already in row photos"), "{e}");
+        let bad = write("bad.json", serde_json::json!({"auc": 1}));
+        let e = merge_reports(&[("x".to_string(), bad)], &out)
+            .unwrap_err()
+            .message;
+        assert!(
+            e.contains("bad.json") && e.contains("not a bop-eval report"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

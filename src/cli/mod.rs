@@ -113,6 +113,7 @@ pub(crate) enum Command {
 }
 
 /// An error with the process exit code it maps to.
+#[derive(Debug)]
 pub(crate) struct Failure {
     pub(crate) code: u8,
     pub(crate) message: String,
