@@ -203,10 +203,13 @@ pub type VariantCurves = (String, Vec<(String, Vec<(f64, f64)>)>);
 /// the legend. `variants[v] = (name, [(object, curve points)])`.
 pub fn variants_png(variants: &[VariantCurves], out: &Path) -> Result<(), PlotError> {
     let text = font_available();
-    let objects: Vec<&String> = variants
-        .first()
-        .map(|(_, o)| o.iter().map(|(n, _)| n).collect())
-        .unwrap_or_default();
+    // Every variant's objects, in the order they first appear.
+    let mut objects: Vec<&String> = Vec::new();
+    for (n, _) in variants.iter().flat_map(|(_, o)| o) {
+        if !objects.contains(&n) {
+            objects.push(n);
+        }
+    }
     let cols = objects.len().clamp(1, 4);
     let rows = objects.len().div_ceil(cols).max(1);
     let (pw, ph) = (360u32, 300u32);
@@ -290,8 +293,9 @@ mod tests {
             .iter()
             .map(|o| (o.to_string(), curve.clone()))
             .collect();
+        // An object only the second variant has still gets its panel.
         let variants = vec![
-            ("sdhop".to_string(), objects.clone()),
+            ("sdhop".to_string(), objects[..4].to_vec()),
             ("plain".to_string(), objects),
         ];
         let out = dir.join("variants.png");
