@@ -514,6 +514,21 @@ fn merge_reports(inputs: &[(String, PathBuf)], out: &Path) -> Result<(), Failure
             }
         }
     }
+    // Reports of different photographs are not comparable: say so.
+    let scored = |v: &serde_json::Value| (v["images"].clone(), v["train_photos"].clone());
+    if let Some(first) = sources.first() {
+        for s in sources.iter().filter(|s| scored(s) != scored(first)) {
+            eprintln!(
+                "warning: {} scored {} photographs after {} training ones, {} scored {} after {}",
+                s["report"],
+                s["images"],
+                s["train_photos"],
+                first["report"],
+                first["images"],
+                first["train_photos"]
+            );
+        }
+    }
     for row in &mut rows {
         row.objects.sort_by_key(|a| a.obj_id);
         let n = row.objects.len().max(1) as f64;
