@@ -112,6 +112,18 @@ struct Variant {
     pose: Vec<PoseOutcome>,
 }
 
+impl Variant {
+    /// The means over the objects of their figures.
+    fn set_means(&mut self) {
+        let n = self.objects.len().max(1) as f64;
+        let mean = |f: &dyn Fn(&DetectScore) -> f64| self.objects.iter().map(f).sum::<f64>() / n;
+        self.mean_auc = mean(&|s| s.auc);
+        self.mean_seg_error = mean(&|s| s.seg_error);
+        self.mean_seg_error_raw = mean(&|s| s.seg_error_raw);
+        self.mean_recall_at_1fppi = mean(&|s| s.recall_at_1fppi);
+    }
+}
+
 fn name_of(obj: u32) -> Option<&'static str> {
     LINEMOD_NAMES
         .iter()
@@ -191,9 +203,6 @@ fn evaluate(
             )
         })
         .collect();
-    let mean = |f: &dyn Fn(&DetectScore) -> f64| {
-        objects.iter().map(f).sum::<f64>() / objects.len().max(1) as f64
-    };
     let mut poses = Vec::new();
     if pose {
         let cases: Vec<(usize, usize, &str, u32)> = images
@@ -275,17 +284,19 @@ fn evaluate(
         }
         pb.finish_and_clear();
     }
-    Ok(Variant {
+    let mut v = Variant {
         name: name.to_string(),
         models_dir: dir.display().to_string(),
-        mean_auc: mean(&|s| s.auc),
-        mean_seg_error: mean(&|s| s.seg_error),
-        mean_seg_error_raw: mean(&|s| s.seg_error_raw),
-        mean_recall_at_1fppi: mean(&|s| s.recall_at_1fppi),
+        mean_auc: 0.0,
+        mean_seg_error: 0.0,
+        mean_seg_error_raw: 0.0,
+        mean_recall_at_1fppi: 0.0,
         detect_ms_per_image: detect_ms,
         objects,
         pose: poses,
-    })
+    };
+    v.set_means();
+    Ok(v)
 }
 
 fn print_variant(v: &Variant) {
@@ -531,12 +542,7 @@ fn merge_reports(inputs: &[(String, PathBuf)], out: &Path) -> Result<(), Failure
     }
     for row in &mut rows {
         row.objects.sort_by_key(|a| a.obj_id);
-        let n = row.objects.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&DetectScore) -> f64| row.objects.iter().map(f).sum::<f64>() / n;
-        row.mean_auc = mean(&|s| s.auc);
-        row.mean_seg_error = mean(&|s| s.seg_error);
-        row.mean_seg_error_raw = mean(&|s| s.seg_error_raw);
-        row.mean_recall_at_1fppi = mean(&|s| s.recall_at_1fppi);
+        row.set_means();
     }
     for row in &rows {
         print_variant(row);
