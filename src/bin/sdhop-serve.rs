@@ -119,11 +119,21 @@ struct Args {
     /// answered 429 and closed.
     #[arg(long, env = "SDHOP_MAX_CONNECTIONS_PER_CLIENT", default_value_t = 128)]
     max_connections_per_client: usize,
-    /// Seconds to finish requests in flight after SIGTERM (or Ctrl-C):
-    /// the service turns not ready and admits nothing new; requests still
-    /// waiting when the period ends are answered 503 just before it does.
+    /// Seconds to finish requests in flight after SIGTERM (after the
+    /// drain, --drain-seconds) or Ctrl-C: the service stops accepting
+    /// connections and admits nothing new; requests still waiting when the
+    /// period ends, and bodies still arriving, are answered 503 just
+    /// before it does.
     #[arg(long, env = "SDHOP_GRACE_SECONDS", default_value_t = 30)]
     grace_seconds: u64,
+    /// Seconds to keep serving after SIGTERM before the grace period: readiness
+    /// answers 503 while connections are still accepted and requests
+    /// answered, so that requests routed here before the orchestrator's
+    /// endpoints update are served rather than refused (Kubernetes sends
+    /// SIGTERM and updates its endpoints at the same time). Ctrl-C
+    /// (SIGINT), or a second signal, skips the drain.
+    #[arg(long, env = "SDHOP_DRAIN_SECONDS", default_value_t = 5.0)]
+    drain_seconds: f64,
     /// Log format.
     #[arg(long, env = "SDHOP_LOG_FORMAT", value_enum, default_value = "text")]
     log_format: LogFormat,
@@ -168,8 +178,15 @@ fn init_logging(format: LogFormat) {
     }
 }
 
-/// Resolves on SIGTERM or Ctrl-C.
-async fn shutdown_signal() {
+/// The signal that asked the service to stop.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stop {
+    Terminate,
+    Interrupt,
+}
+
+/// Resolves on SIGTERM or Ctrl-C, saying which.
+async fn stop_signal() -> Stop {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };
@@ -185,8 +202,27 @@ async fn shutdown_signal() {
     #[cfg(not(unix))]
     let term = std::future::pending::<()>();
     tokio::select! {
-        () = ctrl_c => {},
-        () = term => {},
+        () = ctrl_c => Stop::Interrupt,
+        () = term => Stop::Terminate,
+    }
+}
+
+/// Resolves when the service should stop taking connections: on Ctrl-C at
+/// once; on SIGTERM after `drain` of serving while not ready (cut short by
+/// a second signal).
+async fn shutdown_signal(state: Arc<AppState>, drain: Duration) {
+    let first = stop_signal().await;
+    if first == Stop::Interrupt || drain.is_zero() {
+        return;
+    }
+    state.begin_drain();
+    tracing::info!(
+        "SIGTERM: draining for {:.1} s (not ready, still serving)",
+        drain.as_secs_f64()
+    );
+    tokio::select! {
+        () = tokio::time::sleep(drain) => {}
+        stop = stop_signal() => tracing::info!("{stop:?} during the drain: stopping now"),
     }
 }
 
@@ -216,6 +252,8 @@ fn run(args: Args) -> Result<(), String> {
             .build_global()
             .map_err(|e| e.to_string())?;
     }
+    let drain = Duration::try_from_secs_f64(args.drain_seconds)
+        .map_err(|_| format!("--drain-seconds {}: give a number of seconds, 0 or more", args.drain_seconds))?;
     let models = load_models(&args.models_dir).map_err(|e| e.to_string())?;
     let registry = Registry::new();
     let (backend, why_not_gpu) =
@@ -291,7 +329,8 @@ fn run(args: Args) -> Result<(), String> {
             }
         });
         let grace = Duration::from_secs(args.grace_seconds);
-        let clean = serve(listener, state, shutdown_signal(), grace)
+        let signal = shutdown_signal(Arc::clone(&state), drain);
+        let clean = serve(listener, state, signal, grace)
             .await
             .map_err(|e| e.to_string())?;
         if clean {

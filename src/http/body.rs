@@ -174,9 +174,18 @@ impl Pacing {
 /// before anything else is done with the request: a client that is slow
 /// or stalls is answered 408 and holds no place in the queue, a body over
 /// the limit 413 (after it was read on, see [`DrainPastLimit`]). Returns
-/// the request with its body in memory.
-pub async fn buffer(req: Request, limit: usize, pacing: &Pacing) -> Result<Request, ApiError> {
+/// the request with its body in memory. A body still arriving when
+/// `grace_ended` resolves (the end of the shutdown's grace period) is
+/// answered 503, so that its client gets a status rather than a closed
+/// connection.
+pub async fn buffer(
+    req: Request,
+    limit: usize,
+    pacing: &Pacing,
+    grace_ended: impl std::future::Future<Output = ()>,
+) -> Result<Request, ApiError> {
     let (parts, mut body) = req.into_parts();
+    let mut grace_ended = std::pin::pin!(grace_ended);
     let start = Instant::now();
     // Room for the declared length (within the limit) at once: growing by
     // doubling would copy a large body several times and hold twice its
@@ -185,7 +194,17 @@ pub async fn buffer(req: Request, limit: usize, pacing: &Pacing) -> Result<Reque
     let mut buf: Vec<u8> = Vec::with_capacity(declared.min(limit as u64) as usize);
     loop {
         let due = pacing.due(start, buf.len());
-        let frame = match tokio::time::timeout_at(due.into(), body.frame()).await {
+        let next = tokio::select! {
+            next = tokio::time::timeout_at(due.into(), body.frame()) => next,
+            () = &mut grace_ended => {
+                return Err(ApiError::NotReady(format!(
+                    "shutting down: the grace period ended while the body was arriving ({} bytes in {:.1} s)",
+                    buf.len(),
+                    start.elapsed().as_secs_f64()
+                )));
+            }
+        };
+        let frame = match next {
             Err(_) => {
                 let why = if due >= pacing.deadline {
                     "before the request's deadline".to_string()

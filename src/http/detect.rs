@@ -42,7 +42,8 @@ pub struct DetectQuery {
     pub max_detections: Option<usize>,
     pub masks: MaskMode,
     pub format: Option<Format>,
-    pub rle: RleFormat,
+    /// `None`: not given (uncompressed).
+    pub rle: Option<RleFormat>,
     pub timeout: Option<Duration>,
     /// Response transfer between the models (see `DetectOptions::transfer`).
     pub transfer: bool,
@@ -63,7 +64,7 @@ impl DetectQuery {
             max_detections: None,
             masks: MaskMode::Refined,
             format: None,
-            rle: RleFormat::Uncompressed,
+            rle: None,
             timeout: None,
             transfer: false,
         };
@@ -130,11 +131,11 @@ impl DetectQuery {
                     })
                 }
                 "rle" => {
-                    q.rle = match v.as_ref() {
+                    q.rle = Some(match v.as_ref() {
                         "uncompressed" => RleFormat::Uncompressed,
                         "compressed" => RleFormat::Compressed,
                         _ => return Err(bad(&k, &v, "expected uncompressed or compressed")),
-                    }
+                    })
                 }
                 "timeout_ms" => q.timeout = Some(timeout_param(&v, max_timeout)?),
                 "transfer" => {
@@ -184,41 +185,144 @@ pub(super) fn media_type(headers: &HeaderMap) -> Option<String> {
     Some(v.split(';').next()?.trim().to_ascii_lowercase())
 }
 
-/// Whether the client asked for a PNG by its `Accept` header: `image/png`
-/// listed with a weight above 0 and above that of `application/json` (or
-/// of `*/*`, `application/*` where JSON is not listed).
-fn accepts_png(headers: &HeaderMap) -> bool {
-    let Some(accept) = headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()) else {
-        return false;
-    };
-    // The weight of each listed media range.
-    let weights: Vec<(String, f32)> = accept
-        .split(',')
-        .filter_map(|item| {
+impl Format {
+    /// The media type of the answer.
+    pub fn media_type(self) -> &'static str {
+        match self {
+            Format::Json => "application/json",
+            Format::Png => "image/png",
+        }
+    }
+
+    fn query_name(self) -> &'static str {
+        match self {
+            Format::Json => "json",
+            Format::Png => "png",
+        }
+    }
+}
+
+/// A weight of the `Accept` header (RFC 9110, 12.4.2): `0` or `1`, or
+/// `0.` with up to three digits, or `1.` with up to three zeros.
+fn qvalue(text: &str) -> Option<f32> {
+    let (int, frac) = text.split_once('.').unwrap_or((text, ""));
+    let ok = frac.len() <= 3
+        && frac.bytes().all(|b| b.is_ascii_digit())
+        && match int {
+            "0" => true,
+            "1" => frac.bytes().all(|b| b == b'0'),
+            _ => false,
+        };
+    ok.then(|| text.parse().ok()).flatten()
+}
+
+/// The media ranges of the request's `Accept` headers with their weights;
+/// a range whose `q` is not a weight is left out. `None`: no header, or
+/// no usable range in it (every type is then acceptable).
+fn accept_ranges(headers: &HeaderMap) -> Option<Vec<(String, f32)>> {
+    let mut ranges = Vec::new();
+    for value in headers.get_all(header::ACCEPT) {
+        let Ok(value) = value.to_str() else { continue };
+        for item in value.split(',') {
             let mut parts = item.split(';');
-            let range = parts.next()?.trim().to_ascii_lowercase();
-            let q = parts
-                .filter_map(|p| p.trim().strip_prefix("q="))
-                .find_map(|q| q.trim().parse::<f32>().ok())
-                .unwrap_or(1.0);
-            Some((range, q))
+            let range = parts.next().unwrap_or_default().trim().to_ascii_lowercase();
+            if range.is_empty() {
+                continue;
+            }
+            let mut q = Some(1.0);
+            for p in parts {
+                if let Some((k, v)) = p.split_once('=') {
+                    if k.trim().eq_ignore_ascii_case("q") {
+                        q = qvalue(v.trim());
+                        break;
+                    }
+                }
+            }
+            if let Some(q) = q {
+                ranges.push((range, q));
+            }
+        }
+    }
+    (!ranges.is_empty()).then_some(ranges)
+}
+
+/// The weight `ranges` give `media_type`: that of the most specific range
+/// matching it (`type/subtype`, then `type/*`, then `*/*`; the largest
+/// where one is listed twice), 0 when none matches.
+fn weight_of(ranges: &[(String, f32)], media_type: &str) -> f32 {
+    let main = media_type.split('/').next().unwrap_or_default();
+    let wildcard = format!("{main}/*");
+    [media_type, wildcard.as_str(), "*/*"]
+        .iter()
+        .find_map(|want| {
+            ranges
+                .iter()
+                .filter(|(r, _)| r == want)
+                .map(|(_, q)| *q)
+                .reduce(f32::max)
         })
-        .collect();
-    let weight = |range: &str| {
-        weights
+        .unwrap_or(0.0)
+}
+
+/// The answer's format: `format=` when given, else the type `Accept`
+/// weighs highest (JSON on a tie or without the header). A format the
+/// `Accept` header does not accept (weight 0, or matched by no range) is
+/// answered 406 rather than sent: `format=` chooses between acceptable
+/// types, it does not override a refusal.
+pub fn negotiate(headers: &HeaderMap, asked: Option<Format>) -> Result<Format, ApiError> {
+    let Some(ranges) = accept_ranges(headers) else {
+        return Ok(asked.unwrap_or(Format::Json));
+    };
+    let accepted = |f: Format| weight_of(&ranges, f.media_type());
+    let listed = || {
+        headers
+            .get_all(header::ACCEPT)
             .iter()
-            .filter(|(r, _)| r == range)
-            .map(|(_, q)| *q)
-            .fold(None, |a: Option<f32>, q| Some(a.map_or(q, |a| a.max(q))))
+            .filter_map(|v| v.to_str().ok())
+            .collect::<Vec<_>>()
+            .join(", ")
     };
-    let Some(png) = weight("image/png") else {
-        return false;
+    match asked {
+        Some(f) if accepted(f) > 0.0 => Ok(f),
+        Some(f) => Err(ApiError::NotAcceptable(format!(
+            "format={} answers {}, which the Accept header ({}) does not accept",
+            f.query_name(),
+            f.media_type(),
+            super::error::shorten(&listed())
+        ))),
+        None => {
+            let (json, png) = (accepted(Format::Json), accepted(Format::Png));
+            if json <= 0.0 && png <= 0.0 {
+                Err(ApiError::NotAcceptable(format!(
+                    "the Accept header ({}) accepts neither application/json nor image/png, the answers /detect gives",
+                    super::error::shorten(&listed())
+                )))
+            } else if png > json {
+                Ok(Format::Png)
+            } else {
+                Ok(Format::Json)
+            }
+        }
+    }
+}
+
+/// Checks the options against the answer's format: a label map is drawn
+/// from one mask per detection and its detections carry no masks, so
+/// `masks=none` or `both` and `rle` cannot be honoured with it (422).
+fn check_format_options(format: Format, query: &DetectQuery) -> Result<(), ApiError> {
+    if format != Format::Png {
+        return Ok(());
+    }
+    let conflict = match (query.masks, query.rle) {
+        (MaskMode::None, _) => Some("masks=none leaves no mask to draw: ask for masks=refined (the default) or raw"),
+        (MaskMode::Both, _) => Some("masks=both gives two masks per detection and a label map draws one: ask for masks=refined (the default) or raw"),
+        (_, Some(_)) => Some("rle says how JSON masks are written, and the label map's detections carry none: leave rle out"),
+        _ => None,
     };
-    let json = weight("application/json")
-        .or_else(|| weight("application/*"))
-        .or_else(|| weight("*/*"))
-        .unwrap_or(0.0);
-    png > 0.0 && png > json
+    match conflict {
+        Some(why) => Err(ApiError::Unprocessable(format!("a label map (image/png) answer: {why}"))),
+        None => Ok(()),
+    }
 }
 
 /// The image bytes of a request, within the body limit.
@@ -308,26 +412,27 @@ pub async fn detect(
     let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
     // The whole body before a place in the queue: a client that is not
     // sending holds none.
-    let req = super::body::buffer(req, cfg.max_body_bytes, &state.pacing(deadline)).await?;
+    let req = super::body::buffer(
+        req,
+        cfg.max_body_bytes,
+        &state.pacing(deadline),
+        state.infer.grace_ended(),
+    )
+    .await?;
     let query = query?;
+    let format = negotiate(req.headers(), query.format)?;
+    check_format_options(format, &query)?;
     // Admission before decoding or keeping anything: an overload costs no
     // decoding and no memory beyond the queue's.
     let permit = state.infer.admit()?;
-    let wants_png = accepts_png(req.headers());
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
     let models = select_models(&state, &query.models)?;
-    let format = query
-        .format
-        .unwrap_or(if wants_png { Format::Png } else { Format::Json });
     let limits = cfg.image;
     let image = tokio::task::spawn_blocking(move || decode(&bytes, &limits))
         .await
         .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
-    // A label map needs masks: the raw ones when asked for, else refined.
-    let masks = match (format, query.masks) {
-        (Format::Png, MaskMode::None | MaskMode::Both) => MaskMode::Refined,
-        (_, m) => m,
-    };
+    // A label map is drawn from the masks asked for (refined or raw).
+    let masks = query.masks;
     let task = DetectTask {
         image: Arc::new(image),
         models,
@@ -344,10 +449,11 @@ pub async fn detect(
         },
     };
     let resp = state.infer.detect(permit, task, deadline).await?;
+    let rle = query.rle.unwrap_or(RleFormat::Uncompressed);
     match format {
-        Format::Json if query.rle == RleFormat::Uncompressed => Ok(Json(resp).into_response()),
+        Format::Json if rle == RleFormat::Uncompressed => Ok(Json(resp).into_response()),
         Format::Json => Ok(Json(
-            resp.to_json(query.rle)
+            resp.to_json(rle)
                 .map_err(|e| ApiError::Internal(format!("JSON: {e}")))?,
         )
         .into_response()),
@@ -566,7 +672,7 @@ mod tests {
         let accepts = |v: &str| {
             let mut h = HeaderMap::new();
             h.insert(header::ACCEPT, HeaderValue::from_str(v).unwrap());
-            accepts_png(&h)
+            matches!(negotiate(&h, None), Ok(Format::Png))
         };
         assert!(accepts("image/png"));
         assert!(accepts("image/png, application/json;q=0.5"));
@@ -583,5 +689,68 @@ mod tests {
         assert_eq!(ascii_json("{\"l\":\"tasse\"}"), "{\"l\":\"tasse\"}");
         assert_eq!(ascii_json("é"), "\\u00e9");
         assert!(HeaderValue::from_str(&ascii_json("\"🍵\"")).is_ok());
+    }
+
+    fn with_accept(values: &[&str]) -> HeaderMap {
+        let mut h = HeaderMap::new();
+        for v in values {
+            h.append(header::ACCEPT, HeaderValue::from_str(v).unwrap());
+        }
+        h
+    }
+
+    #[test]
+    fn accept_is_negotiated_as_http_says() {
+        use Format::{Json, Png};
+        let cases: [(&[&str], Option<Format>, Option<Format>); 16] = [
+            (&[], None, Some(Json)),
+            (&["image/*"], None, Some(Png)),
+            (&["application/json;q=0.9, image/*;q=1"], None, Some(Png)),
+            (&["image/png, application/json"], None, Some(Json)),
+            (&["*/*"], None, Some(Json)),
+            (&["image/png;q=0.5, */*;q=0.1"], None, Some(Png)),
+            // A malformed weight leaves its range out: none is left.
+            (&["image/png;q=abc"], None, Some(Json)),
+            (&["image/png;q=1.5"], None, Some(Json)),
+            (&["image/png;q=0.0001, application/json;q=0.5"], None, Some(Json)),
+            // Both refused, or neither listed: 406.
+            (&["image/png;q=0, application/json;q=0"], None, None),
+            (&["text/html"], None, None),
+            (&["image/png;q=0"], None, None),
+            // format= chooses among acceptable types, never a refused one.
+            (&["image/png;q=0, application/json"], Some(Png), None),
+            (&["application/json"], Some(Png), None),
+            (&["image/png;q=0.1, application/json"], Some(Png), Some(Png)),
+            // Two Accept headers count as one list.
+            (&["application/json;q=0", "image/png"], None, Some(Png)),
+        ];
+        for (accept, asked, want) in cases {
+            let got = negotiate(&with_accept(accept), asked);
+            match (got, want) {
+                (Ok(f), Some(w)) => assert_eq!(f, w, "{accept:?} {asked:?}"),
+                (Err(ApiError::NotAcceptable(m)), None) => assert!(!m.contains('\n')),
+                (got, want) => panic!("{accept:?} {asked:?}: {got:?}, expected {want:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn label_maps_refuse_options_they_cannot_honour() {
+        for (q, ok) in [
+            ("format=png", true),
+            ("format=png&masks=raw", true),
+            ("format=png&masks=none", false),
+            ("format=png&masks=both", false),
+            ("format=png&rle=compressed", false),
+            ("format=json&masks=none&rle=compressed", true),
+        ] {
+            let query = parse(q).unwrap();
+            let format = query.format.unwrap();
+            let r = check_format_options(format, &query);
+            assert_eq!(r.is_ok(), ok, "{q}: {r:?}");
+            if let Err(e) = r {
+                assert!(matches!(e, ApiError::Unprocessable(_)), "{q}");
+            }
+        }
     }
 }

@@ -30,6 +30,8 @@ pub enum ApiError {
     #[error("{0}")]
     UnsupportedMediaType(String),
     #[error("{0}")]
+    NotAcceptable(String),
+    #[error("{0}")]
     Unprocessable(String),
     #[error("the {0} lane of the inference queue is full, retry later")]
     Overloaded(&'static str),
@@ -73,6 +75,7 @@ impl ApiError {
             ApiError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            ApiError::NotAcceptable(_) => StatusCode::NOT_ACCEPTABLE,
             ApiError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::Overloaded(_) | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
                 StatusCode::SERVICE_UNAVAILABLE
@@ -90,6 +93,7 @@ impl ApiError {
             ApiError::MethodNotAllowed => "method_not_allowed",
             ApiError::PayloadTooLarge(_) => "payload_too_large",
             ApiError::UnsupportedMediaType(_) => "unsupported_media_type",
+            ApiError::NotAcceptable(_) => "not_acceptable",
             ApiError::Unprocessable(_) => "unprocessable",
             ApiError::Overloaded(_) => "overloaded",
             ApiError::NotReady(_) => "not_ready",

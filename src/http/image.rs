@@ -192,13 +192,41 @@ pub fn decode_mask(
             }
         }
     };
+    // A tRNS chunk makes pixels transparent without an alpha channel: a
+    // palette index whose alpha is 0, or the one grey level or colour it
+    // names (stored values at the image's depth; the decoder keeps one
+    // byte per channel below 16 bits, two big-endian at 16).
+    let trns = reader.info().trns.as_deref().map(<[u8]>::to_vec);
+    let keyed = |t: &[u8], c: usize| -> Option<u16> {
+        if bits == 16 {
+            t.get(2 * c..2 * c + 2)
+                .map(|b| u16::from_be_bytes([b[0], b[1]]))
+        } else {
+            t.get(c).map(|&b| u16::from(b))
+        }
+    };
+    let transparent = |row: &[u8], first: usize| -> bool {
+        let Some(t) = trns.as_deref() else {
+            return false;
+        };
+        match colour {
+            png::ColorType::Indexed => t.get(usize::from(sample(row, first))) == Some(&0),
+            png::ColorType::Grayscale => keyed(t, 0) == Some(sample(row, first)),
+            png::ColorType::Rgb => (0..3).all(|c| keyed(t, c) == Some(sample(row, first + c))),
+            _ => false,
+        }
+    };
     let mut mask = Mask::new(w, h);
     for y in 0..h {
         let row = &buf[y * line..(y + 1) * line];
         for x in 0..w {
             let first = x * channels;
             let colours = if alpha { channels - 1 } else { channels };
-            let opaque = !alpha || sample(row, first + channels - 1) != 0;
+            let opaque = if alpha {
+                sample(row, first + channels - 1) != 0
+            } else {
+                !transparent(row, first)
+            };
             if opaque && (0..colours).any(|c| sample(row, first + c) != 0) {
                 mask.set(x, y, true);
             }
@@ -305,6 +333,53 @@ mod tests {
                 decode_mask(bad, &ImageLimits::default(), None),
                 Err(ApiError::Unprocessable(_))
             ));
+        }
+    }
+
+    /// An 8x1 PNG of `colour` with stored `data`, a palette and a tRNS
+    /// chunk when given.
+    fn keyed_png(colour: png::ColorType, data: &[u8], palette: Option<Vec<u8>>, trns: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        let mut e = png::Encoder::new(&mut out, 8, 1);
+        e.set_color(colour);
+        e.set_depth(png::BitDepth::Eight);
+        if let Some(p) = palette {
+            e.set_palette(p);
+        }
+        e.set_trns(trns.to_vec());
+        let mut w = e.write_header().unwrap();
+        w.write_image_data(data).unwrap();
+        w.finish().unwrap();
+        out
+    }
+
+    #[test]
+    fn a_trns_chunk_hides_what_it_makes_transparent() {
+        let limits = ImageLimits::default();
+        let row = |m: &Mask| (0..8).map(|x| m.get(x, 0)).collect::<Vec<_>>();
+        // Palette: index 2 fully transparent, index 1 half.
+        let palette = keyed_png(
+            png::ColorType::Indexed,
+            &[0, 1, 2, 1, 2, 0, 1, 2],
+            Some(vec![0; 9]),
+            &[255, 128, 0],
+        );
+        // Grey: level 7 is transparent.
+        let grey = keyed_png(png::ColorType::Grayscale, &[0, 1, 7, 1, 7, 0, 1, 7], None, &[0, 7]);
+        // RGB: (0, 7, 0) is transparent; (0, 7, 1) is not.
+        let rgb_data: Vec<u8> = [0u8, 1, 2, 1, 2, 0, 1, 2]
+            .iter()
+            .flat_map(|&k| match k {
+                0 => [0, 0, 0],
+                1 => [0, 7, 1],
+                _ => [0, 7, 0],
+            })
+            .collect();
+        let rgb = keyed_png(png::ColorType::Rgb, &rgb_data, None, &[0, 0, 0, 7, 0, 0]);
+        let want = vec![false, true, false, true, false, false, true, false];
+        for (what, bytes) in [("palette", palette), ("grey", grey), ("rgb", rgb)] {
+            let m = decode_mask(&bytes, &limits, Some((8, 1))).unwrap();
+            assert_eq!(row(&m), want, "{what}");
         }
     }
 }

@@ -29,7 +29,8 @@ pub async fn live() -> Json<Status> {
 }
 
 /// `GET /health/ready`: models loaded and warmed, backend healthy, not
-/// shutting down, no lane saturated (503 says which is).
+/// draining or shutting down (503 says which); full lanes do not count
+/// (see [`AppState::readiness`]).
 pub async fn ready(State(state): State<Arc<AppState>>) -> Result<Json<Status>, ApiError> {
     state
         .readiness()

@@ -138,7 +138,13 @@ pub async fn pose(
             .copied()
             .flatten()
             .unwrap_or(cfg.default_timeout);
-    let req = super::body::buffer(req, cfg.max_pose_body_bytes, &state.pacing(deadline)).await?;
+    let req = super::body::buffer(
+        req,
+        cfg.max_pose_body_bytes,
+        &state.pacing(deadline),
+        state.infer.grace_ended(),
+    )
+    .await?;
     timeout?;
     // Admission to the pose lane before keeping anything, as for /detect.
     let permit = state.infer.admit_to(Lane::Pose)?;
@@ -172,26 +178,32 @@ pub async fn pose(
         _ => None,
     };
     let mesh_limits = cfg.mesh;
-    let task = tokio::task::spawn_blocking(move || {
-        // The mesh first: its reading is bounded by its declared counts,
-        // checked against its bytes and the limits before any allocation.
-        let mesh = Mesh::parse_within(&mesh, &mesh_limits, &Deadline::at(deadline))?;
-        let image = decode(&image, &limits)?;
-        let mask = mask_bytes
-            .map(|b| decode_mask(&b, &limits, Some(size)))
-            .transpose()?;
-        params.check_projection(&mesh, size)?;
-        Ok::<_, ApiError>(PoseTask {
-            image: Arc::new(image),
-            mesh,
-            params,
-            mask,
-            model,
+    // On the pose pool, at its priority: what the client sent costs what
+    // its bytes allow, and that is pose work.
+    let (task, dropped) = state
+        .infer
+        .on_pose_pool(deadline, move || {
+            // The mesh first: its reading is bounded by its bytes and the
+            // limits before any allocation, and by the deadline.
+            let (mesh, dropped) =
+                Mesh::read_within(&mesh, &mesh_limits, &Deadline::at(deadline))?;
+            let image = decode(&image, &limits)?;
+            let mask = mask_bytes
+                .map(|b| decode_mask(&b, &limits, Some(size)))
+                .transpose()?;
+            params.check_projection(&mesh, size)?;
+            let task = PoseTask {
+                image: Arc::new(image),
+                mesh,
+                params,
+                mask,
+                model,
+            };
+            Ok::<_, ApiError>((task, dropped))
         })
-    })
-    .await
-    .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
-    let resp = state.infer.pose(permit, task, deadline).await?;
+        .await??;
+    let mut resp = state.infer.pose(permit, task, deadline).await?;
+    resp.mesh_faces_dropped = dropped.total();
     Ok(Json(resp).into_response())
 }
 

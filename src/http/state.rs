@@ -14,7 +14,7 @@ use super::body::Pacing;
 use super::conn::ConnLimits;
 use super::image::ImageLimits;
 use super::metrics::HttpMetrics;
-use crate::infer::{Infer, Lane};
+use crate::infer::Infer;
 use crate::model::{Model, ModelError};
 use crate::pose::MeshLimits;
 
@@ -144,6 +144,9 @@ pub struct AppState {
     pub metrics: HttpMetrics,
     /// Set once the models are warmed; cleared when shutting down.
     ready: AtomicBool,
+    /// Set on SIGTERM: still serving, but asking to be sent no more
+    /// traffic (see [`AppState::begin_drain`]).
+    draining: AtomicBool,
     shutting_down: AtomicBool,
 }
 
@@ -151,24 +154,23 @@ pub struct AppState {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NotReady {
     WarmingUp,
+    /// Still serving, about to stop: send traffic elsewhere.
+    Draining,
     ShuttingDown,
     BackendUnhealthy,
     Overrunning,
-    /// Every place of a lane is taken: its requests would be refused.
-    Saturated(Lane, usize),
 }
 
 impl NotReady {
     pub fn reason(self) -> String {
         match self {
             NotReady::WarmingUp => "models are warming up".into(),
+            NotReady::Draining => {
+                "draining before shutdown: still answering, send new requests elsewhere".into()
+            }
             NotReady::ShuttingDown => "shutting down".into(),
             NotReady::BackendUnhealthy => "the compute backend failed".into(),
             NotReady::Overrunning => "a computation is running past its deadline".into(),
-            NotReady::Saturated(lane, places) => format!(
-                "the {} lane is saturated (all {places} places taken)",
-                lane.name()
-            ),
         }
     }
 }
@@ -188,25 +190,41 @@ impl AppState {
             registry,
             metrics,
             ready: AtomicBool::new(false),
+            draining: AtomicBool::new(false),
             shutting_down: AtomicBool::new(false),
         }))
     }
 
-    /// `Ok` when ready to serve, else why not.
+    /// `Ok` when the service should be sent traffic, else why not.
+    /// Readiness means "send me requests": it does not follow how full the
+    /// lanes are. A pod whose pose lane is full still serves `/detect`, the
+    /// main kind of request, and a full lane refuses its own requests with
+    /// 503 and `Retry-After` and shows in `/metrics` (`sdhop_lane_occupancy`,
+    /// on which the autoscaler may scale): taking a busy pod out of the
+    /// Service would only move its load to the others and, with every pod
+    /// busy, take `/detect` down everywhere (see docs/design.md).
     pub fn readiness(&self) -> Result<(), NotReady> {
         if self.shutting_down.load(Ordering::Acquire) || !self.infer.accepting() {
             Err(NotReady::ShuttingDown)
+        } else if self.draining.load(Ordering::Acquire) {
+            Err(NotReady::Draining)
         } else if !self.infer.backend_healthy() {
             Err(NotReady::BackendUnhealthy)
         } else if self.infer.overrunning() {
             Err(NotReady::Overrunning)
         } else if !self.ready.load(Ordering::Acquire) {
             Err(NotReady::WarmingUp)
-        } else if let Some((lane, places)) = self.infer.saturated() {
-            Err(NotReady::Saturated(lane, places))
         } else {
             Ok(())
         }
+    }
+
+    /// The drain before a shutdown (SIGTERM): readiness answers 503 so
+    /// that the orchestrator stops routing here, while connections are
+    /// still accepted and requests admitted and answered (those routed
+    /// before the endpoints were updated).
+    pub fn begin_drain(&self) {
+        self.draining.store(true, Ordering::Release);
     }
 
     pub fn set_ready(&self) {

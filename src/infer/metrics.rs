@@ -1,6 +1,8 @@
 //! Prometheus metrics of the queue (prefix `sdhop_`, bounded label values).
 
-use prometheus::{Histogram, HistogramOpts, IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry};
+use prometheus::{
+    GaugeVec, Histogram, HistogramOpts, IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry,
+};
 
 use super::Lane;
 
@@ -21,6 +23,10 @@ pub struct InferMetrics {
     pub lane_capacity: IntGaugeVec,
     /// Requests refused because their lane was full.
     pub lane_rejected: IntCounterVec,
+    /// Share of each lane's places taken (0 to 1; 1: saturated, its
+    /// requests are refused 503): what an autoscaler scales on
+    /// (deploy/sdhop-hpa-queue.yaml).
+    pub lane_occupancy: GaugeVec,
 }
 
 /// Latency buckets in seconds, 1 ms to 60 s.
@@ -79,6 +85,13 @@ impl InferMetrics {
                 ),
                 &["lane"],
             )?,
+            lane_occupancy: GaugeVec::new(
+                Opts::new(
+                    "sdhop_lane_occupancy",
+                    "Share of each lane's places taken, 0 to 1 (1: saturated, its requests are answered 503)",
+                ),
+                &["lane"],
+            )?,
         };
         for lane in Lane::ALL {
             m.set_lane(lane, 0);
@@ -93,6 +106,7 @@ impl InferMetrics {
         registry.register(Box::new(m.lane_taken.clone()))?;
         registry.register(Box::new(m.lane_capacity.clone()))?;
         registry.register(Box::new(m.lane_rejected.clone()))?;
+        registry.register(Box::new(m.lane_occupancy.clone()))?;
         Ok(m)
     }
 
@@ -104,12 +118,22 @@ impl InferMetrics {
         self.lane_taken
             .with_label_values(&[lane.name()])
             .set(taken as i64);
+        let places = self.lane_capacity.with_label_values(&[lane.name()]).get();
+        self.lane_occupancy
+            .with_label_values(&[lane.name()])
+            .set(if places > 0 {
+                (taken as f64 / places as f64).min(1.0)
+            } else {
+                0.0
+            });
     }
 
     pub fn set_capacity(&self, lane: Lane, places: usize) {
         self.lane_capacity
             .with_label_values(&[lane.name()])
             .set(places as i64);
+        let taken = self.lane_taken.with_label_values(&[lane.name()]).get();
+        self.set_lane(lane, taken.max(0) as usize);
     }
 
     /// One request refused because `lane` was full.

@@ -493,6 +493,28 @@ impl Infer {
         result
     }
 
+    /// Runs `f` on the pose pool, at its lower priority, and waits for it
+    /// at most until `deadline`: the reading of a pose request's inputs
+    /// (mesh, image, mask), whose cost is the client's to choose, runs
+    /// where pose work runs and not on the runtime's blocking threads.
+    /// Nothing runs when the caller stopped waiting before its turn.
+    pub async fn on_pose_pool<T, F>(&self, deadline: Instant, f: F) -> Result<T, InferError>
+    where
+        T: Send + 'static,
+        F: FnOnce() -> T + Send + 'static,
+    {
+        let (tx, rx) = oneshot::channel();
+        self.shared.pose_pool.spawn(move || {
+            if tx.is_closed() {
+                return;
+            }
+            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
+                .map_err(|_| InferError::Internal("reading the pose request failed".into()));
+            let _ = tx.send(result);
+        });
+        self.wait(rx, deadline).await
+    }
+
     /// Puts an admitted detection in the detect lane; its permit's place
     /// passes to the job (the worker gives it back when it takes the job).
     fn enqueue(&self, mut permit: Permit, work: Work, deadline: Instant) -> Result<(), InferError> {
@@ -536,11 +558,7 @@ impl Infer {
         rx: oneshot::Receiver<Result<T, InferError>>,
         deadline: Instant,
     ) -> Result<T, InferError> {
-        let mut cut = self.shared.cut.subscribe();
-        let cut_now = async move {
-            // Resolves once the cut is set (or can no longer be).
-            let _ = cut.wait_for(|&c| c).await;
-        };
+        let cut_now = self.grace_ended();
         tokio::select! {
             r = tokio::time::timeout_at(deadline.into(), rx) => match r {
                 Ok(Ok(result)) => result,
@@ -558,6 +576,17 @@ impl Infer {
     /// Stops admitting requests; those already queued are still computed.
     pub fn stop_admitting(&self) {
         self.shared.accepting.store(false, Ordering::Release);
+    }
+
+    /// Resolves once the shutdown's grace period ends
+    /// ([`Self::cut_waiting`]): what still waits then (a body still
+    /// arriving, an answer) is answered `ShuttingDown`.
+    pub fn grace_ended(&self) -> impl std::future::Future<Output = ()> + Send + 'static {
+        let mut cut = self.shared.cut.subscribe();
+        async move {
+            // Resolves once the cut is set (or can no longer be).
+            let _ = cut.wait_for(|&c| c).await;
+        }
     }
 
     /// Answers every request still waiting with `ShuttingDown` (the end of

@@ -152,7 +152,17 @@ pub struct PoseResponse {
     /// 1.5 px of the outline, and the same at the initial pose.
     pub region_score: f64,
     pub start_region_score: f64,
+    /// Triangles of the mesh file left out as it was read: repeating a
+    /// vertex, without area, or repeating another triangle (see
+    /// [`crate::pose::mesh::Mesh::drop_empty_faces`]).
+    #[serde(default)]
+    pub mesh_faces_dropped: usize,
 }
+
+/// The most iterations a request may ask for (`max_iterations`).
+pub const MAX_ITERATIONS: usize = 1000;
+/// The largest `start_uncertainty.degrees` a request may give.
+pub const MAX_START_DEGREES: f64 = 1000.0;
 
 /// The least IoU of a detection's box with the box of the mesh at the
 /// initial pose, for `mask: "detect"`.
@@ -351,12 +361,40 @@ impl PoseParams {
             }
             irls.start_sigma_degrees = NO_START_SIGMA_DEGREES;
         }
+        // Each client field checked by its own name (IrlsParams' own
+        // check below is the library's, in its terms).
+        let field = |name: &str, v: f64, range: &str| {
+            PoseError::InvalidParameter(format!("{name} must be {range}, got {v}"))
+        };
         if let Some(n) = self.max_iterations {
+            if !(1..=MAX_ITERATIONS).contains(&n) {
+                return Err(field(
+                    "max_iterations",
+                    n as f64,
+                    &format!("an integer in 1..={MAX_ITERATIONS}"),
+                ));
+            }
             irls.max_iterations = n;
         }
         if let Some(u) = self.start_uncertainty {
             if let Some(d) = u.degrees {
+                if !(d.is_finite() && (0.0..=MAX_START_DEGREES).contains(&d)) {
+                    return Err(field(
+                        "start_uncertainty.degrees",
+                        d,
+                        &format!("a number in 0..={MAX_START_DEGREES}"),
+                    ));
+                }
                 irls.start_sigma_degrees = d;
+            }
+            if let Some(t) = u.translation {
+                if !(t.is_finite() && t >= 0.0) {
+                    return Err(field(
+                        "start_uncertainty.translation",
+                        t,
+                        "a finite number, 0 or more (mesh units)",
+                    ));
+                }
             }
             irls.start_sigma_translation = u.translation;
         }
@@ -610,6 +648,7 @@ fn response(
         start_kept: r.start_kept,
         region_score: r.region_agreement,
         start_region_score: r.start_region_agreement,
+        mesh_faces_dropped: 0,
     }
 }
 

@@ -16,19 +16,28 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// Checks that every value is finite and the focal lengths positive;
+    /// the error names the first field that is not.
     pub fn validate(&self) -> Result<(), PoseError> {
-        let ok = [self.fx, self.fy, self.cx, self.cy]
-            .iter()
-            .all(|v| v.is_finite())
-            && self.fx > 0.0
-            && self.fy > 0.0;
-        if ok {
-            Ok(())
-        } else {
-            Err(PoseError::InvalidParameter(format!(
-                "intrinsics need finite values and fx, fy > 0, got {self:?}"
-            )))
+        let fields = [
+            ("fx", self.fx, true),
+            ("fy", self.fy, true),
+            ("cx", self.cx, false),
+            ("cy", self.cy, false),
+        ];
+        for (name, v, positive) in fields {
+            if !v.is_finite() || (positive && v <= 0.0) {
+                let need = if positive {
+                    "a finite number above 0 (pixels)"
+                } else {
+                    "a finite number (pixels)"
+                };
+                return Err(PoseError::InvalidParameter(format!(
+                    "intrinsics.{name} must be {need}, got {v}"
+                )));
+            }
         }
+        Ok(())
     }
 
     /// The pixel of a camera-frame point in front of the camera.

@@ -2,7 +2,10 @@
 //! the generated meshes of the pose benchmark (a box and a rounded
 //! cylinder). Reading a file is [`super::mesh_file`].
 
+use std::collections::HashSet;
+
 use nalgebra::Vector3;
+use serde::Serialize;
 
 use super::PoseError;
 
@@ -23,6 +26,26 @@ impl MeshLimits {
         max_vertices: MAX_MESH_ELEMENTS,
         max_triangles: MAX_MESH_ELEMENTS,
     };
+}
+
+/// A triangle has no area when twice its area is at most this share of
+/// its longest side squared (the sine of its smallest angle, about).
+const EMPTY_AREA: f64 = 1e-10;
+
+/// The triangles of a mesh file left out as it was read
+/// ([`Mesh::drop_empty_faces`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct DroppedFaces {
+    /// Repeating a vertex, or without area.
+    pub degenerate: usize,
+    /// Repeating an earlier triangle.
+    pub duplicate: usize,
+}
+
+impl DroppedFaces {
+    pub fn total(&self) -> usize {
+        self.degenerate + self.duplicate
+    }
 }
 
 /// A triangle mesh in the client's units.
@@ -70,6 +93,35 @@ impl Mesh {
             )));
         }
         Ok(())
+    }
+
+    /// Leaves out the triangles that carry no surface: those that repeat
+    /// a vertex or whose corners are collinear (no area), and repeats of
+    /// an earlier triangle (the same three vertices in any order or
+    /// winding: the first is kept). Their edges would otherwise be taken
+    /// for creases or boundaries of the outline. Expects valid indices
+    /// ([`Self::validate_within`]).
+    pub fn drop_empty_faces(&mut self) -> DroppedFaces {
+        let mut dropped = DroppedFaces::default();
+        let mut seen: HashSet<[u32; 3]> = HashSet::with_capacity(self.triangles.len());
+        let vertices = &self.vertices;
+        self.triangles.retain(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize]);
+            let (u, v) = (b - a, c - a);
+            let longest = u.norm_squared().max(v.norm_squared()).max((c - b).norm_squared());
+            if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] || u.cross(&v).norm() <= EMPTY_AREA * longest {
+                dropped.degenerate += 1;
+                return false;
+            }
+            let mut key = *t;
+            key.sort_unstable();
+            if !seen.insert(key) {
+                dropped.duplicate += 1;
+                return false;
+            }
+            true
+        });
+        dropped
     }
 
     /// [`Self::validate_within`] the offline tools' limits.
@@ -352,5 +404,45 @@ mod tests {
                 || (p.z.abs() - 0.04).abs() < 1e-12;
             assert!(on_face, "{p:?} is off the box");
         }
+    }
+
+    #[test]
+    fn faces_without_surface_are_left_out_and_counted() {
+        let clean = Mesh::cuboid(0.1, 0.15, 0.08);
+        // Every face twice (once wound the other way), a face repeating a
+        // vertex and one of three collinear corners.
+        let mut dirty = clean.clone();
+        dirty.vertices.push(Vector3::new(0.2, 0.0, 0.0));
+        dirty
+            .triangles
+            .extend(clean.triangles.iter().map(|t| [t[2], t[1], t[0]]));
+        dirty.triangles.extend([[0, 0, 1], [0, 1, 8]]);
+        // Vertex 8 lies on the line through vertices 0 and 1 (y, z equal).
+        dirty.vertices[8] = Vector3::new(0.2, -0.075, -0.04);
+        for bytes in [dirty.to_obj().into_bytes(), dirty.to_ply(true)] {
+            let (read, dropped) =
+                Mesh::read_within(&bytes, &MeshLimits::OFFLINE, &crate::vision::Deadline::NONE)
+                    .unwrap();
+            assert_eq!(read.triangles, clean.triangles);
+            assert_eq!(
+                dropped,
+                DroppedFaces {
+                    degenerate: 2,
+                    duplicate: 12
+                }
+            );
+        }
+        // A byte-order mark before either format is skipped.
+        for bytes in [clean.to_obj().into_bytes(), clean.to_ply(false)] {
+            let mut with_bom = b"\xEF\xBB\xBF".to_vec();
+            with_bom.extend(&bytes);
+            assert_eq!(Mesh::parse(&with_bom).unwrap(), Mesh::parse(&bytes).unwrap());
+        }
+        // Nothing left: refused.
+        let flat = Mesh {
+            vertices: vec![Vector3::zeros(), Vector3::x(), Vector3::x() * 2.0],
+            triangles: vec![[0, 1, 2]],
+        };
+        assert!(Mesh::parse(flat.to_obj().as_bytes()).is_err());
     }
 }

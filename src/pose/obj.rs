@@ -43,6 +43,30 @@ fn statement<'a>(line: &'a [u8], key: &[u8]) -> Option<&'a [u8]> {
         .then_some(rest)
 }
 
+/// Refuses a line whose keyword (its first word) is not ASCII: OBJ's
+/// keywords all are, and a `v` or `f` run into a no-break space or
+/// another invisible character would otherwise be skipped as an unknown
+/// statement, shifting every later index. Comments may hold anything.
+fn check_keyword(line: &[u8], n: usize) -> Result<(), PoseError> {
+    if line.starts_with(b"#") {
+        return Ok(());
+    }
+    let keyword = line
+        .split(|b| b.is_ascii_whitespace())
+        .next()
+        .unwrap_or_default();
+    if keyword.is_ascii() {
+        return Ok(());
+    }
+    let shown = String::from_utf8_lossy(&keyword[..keyword.len().min(20)]);
+    Err(bad(
+        n,
+        format!(
+            "{shown:?} is not an OBJ keyword: it holds a character other than ASCII (a no-break space or byte-order mark?)"
+        ),
+    ))
+}
+
 fn words(rest: &[u8]) -> impl Iterator<Item = &[u8]> {
     rest.split(|b| b.is_ascii_whitespace())
         .filter(|w| !w.is_empty())
@@ -67,6 +91,7 @@ pub fn read(bytes: &[u8], limits: &MeshLimits, deadline: &Deadline) -> Result<Me
         if n % DEADLINE_STRIDE == 0 && deadline.passed() {
             return Err(PoseError::DeadlineExceeded);
         }
+        check_keyword(line, n)?;
         if statement(line, b"v").is_some() {
             nv += 1;
         } else if let Some(rest) = statement(line, b"f") {
@@ -172,5 +197,20 @@ mod tests {
                 other => panic!("{other:?}"),
             }
         }
+    }
+
+    #[test]
+    fn a_keyword_with_a_character_other_than_ascii_is_named() {
+        // A no-break space after `v` used to skip the vertex and shift
+        // every later index by one.
+        let f = "v 0 0 0\nv\u{a0}1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n# a comment may hold \u{a0} and \u{feff}\ng c\u{f4}t\u{e9}\n";
+        match read(f.as_bytes(), &limits(), &Deadline::NONE) {
+            Err(PoseError::InvalidMesh(m)) => {
+                assert!(m.contains("line 2") && m.contains("not an OBJ keyword"), "{m}")
+            }
+            other => panic!("{other:?}"),
+        }
+        let clean = f.replace("v\u{a0}1", "v 1");
+        assert_eq!(read(clean.as_bytes(), &limits(), &Deadline::NONE).unwrap().vertices.len(), 4);
     }
 }

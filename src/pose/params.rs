@@ -101,40 +101,51 @@ impl Default for IrlsParams {
 }
 
 impl IrlsParams {
+    /// Checks every setting; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), PoseError> {
-        let ok = self.max_iterations >= 1
-            && self.max_iterations <= 1000
-            && self.inner_steps >= 1
-            && self.sample_step.is_finite()
-            && self.sample_step >= 0.5
-            && self.search_range.is_finite()
-            && self.search_range > 0.0
-            && self.search_range <= MAX_RANGE as f64
-            && self.min_gradient.is_finite()
-            && (0.0..90.0).contains(&self.max_angle_degrees)
-            && (0.0..180.0).contains(&self.crease_degrees)
-            && self.tukey_c > 0.0
-            && self.tolerance_px > 0.0
-            && self.max_step_px > 0.0
-            && self.mask_margin_px <= 50
-            && (0.0..=45.0).contains(&self.restart_degrees)
-            && self.restart_rings <= 4
-            && (0.0..0.5).contains(&self.restart_depth)
-            && self.start_sigma_degrees.is_finite()
-            && self.start_sigma_degrees >= 0.0
-            && self
-                .start_sigma_translation
-                .is_none_or(|v| v.is_finite() && v >= 0.0)
-            && self.sample_correlation.is_finite()
-            && self.sample_correlation >= 1.0
-            && self.region_weight.is_finite()
-            && self.region_weight >= 0.0;
-        if ok {
-            Ok(())
-        } else {
-            Err(PoseError::InvalidParameter(format!(
-                "invalid pose refinement settings {self:?}"
-            )))
+        let checks = [
+            ("max_iterations", (1..=1000).contains(&self.max_iterations)),
+            ("inner_steps", self.inner_steps >= 1),
+            ("sample_step", self.sample_step.is_finite() && self.sample_step >= 0.5),
+            (
+                "search_range",
+                self.search_range.is_finite()
+                    && self.search_range > 0.0
+                    && self.search_range <= MAX_RANGE as f64,
+            ),
+            ("min_gradient", self.min_gradient.is_finite()),
+            ("max_angle_degrees", (0.0..90.0).contains(&self.max_angle_degrees)),
+            ("crease_degrees", (0.0..180.0).contains(&self.crease_degrees)),
+            ("tukey_c", self.tukey_c > 0.0),
+            ("tolerance_px", self.tolerance_px > 0.0),
+            ("max_step_px", self.max_step_px > 0.0),
+            ("mask_margin_px", self.mask_margin_px <= 50),
+            ("restart_degrees", (0.0..=45.0).contains(&self.restart_degrees)),
+            ("restart_rings", self.restart_rings <= 4),
+            ("restart_depth", (0.0..0.5).contains(&self.restart_depth)),
+            (
+                "start_sigma_degrees",
+                self.start_sigma_degrees.is_finite() && self.start_sigma_degrees >= 0.0,
+            ),
+            (
+                "start_sigma_translation",
+                self.start_sigma_translation
+                    .is_none_or(|v| v.is_finite() && v >= 0.0),
+            ),
+            (
+                "sample_correlation",
+                self.sample_correlation.is_finite() && self.sample_correlation >= 1.0,
+            ),
+            (
+                "region_weight",
+                self.region_weight.is_finite() && self.region_weight >= 0.0,
+            ),
+        ];
+        match checks.iter().find(|(_, ok)| !ok) {
+            None => Ok(()),
+            Some((name, _)) => Err(PoseError::InvalidParameter(format!(
+                "the pose refinement setting {name} is out of its range"
+            ))),
         }
     }
 }

@@ -71,6 +71,32 @@ impl Scalar {
     fn is_integer(self) -> bool {
         !matches!(self, Scalar::F32 | Scalar::F64)
     }
+
+    /// The values an integer type holds (`None`: a float type).
+    fn range(self) -> Option<(f64, f64)> {
+        Some(match self {
+            Scalar::I8 => (i8::MIN.into(), i8::MAX.into()),
+            Scalar::U8 => (0.0, u8::MAX.into()),
+            Scalar::I16 => (i16::MIN.into(), i16::MAX.into()),
+            Scalar::U16 => (0.0, u16::MAX.into()),
+            Scalar::I32 => (i32::MIN.into(), i32::MAX.into()),
+            Scalar::U32 => (0.0, u32::MAX.into()),
+            Scalar::F32 | Scalar::F64 => return None,
+        })
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Scalar::I8 => "char",
+            Scalar::U8 => "uchar",
+            Scalar::I16 => "short",
+            Scalar::U16 => "ushort",
+            Scalar::I32 => "int",
+            Scalar::U32 => "uint",
+            Scalar::F32 => "float",
+            Scalar::F64 => "double",
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -176,6 +202,9 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
         match words.as_slice() {
             ["ply"] if line_no == 1 => {}
             _ if line_no == 1 => return Err(bad("the file does not start with `ply`")),
+            ["format", ..] if format.is_some() => {
+                return Err(at("a second format line"))
+            }
             ["format", f, _version] => {
                 format = Some(match *f {
                     "ascii" => Format::Ascii,
@@ -186,9 +215,11 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
             }
             ["comment", ..] | ["obj_info", ..] | [] => {}
             ["element", name, count] => {
-                let count = count
-                    .parse::<usize>()
-                    .map_err(|_| at("the count is not a non-negative integer"))?;
+                // Digits only: no sign, no blanks, no exponent.
+                let count = Some(*count)
+                    .filter(|c| c.bytes().all(|b| b.is_ascii_digit()))
+                    .and_then(|c| c.parse::<usize>().ok())
+                    .ok_or_else(|| at("the count is not a non-negative integer"))?;
                 if elements.iter().any(|e| e.name == *name) {
                     return Err(at("the element is declared twice"));
                 }
@@ -228,6 +259,14 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
         }
     };
     let format = format.ok_or_else(|| bad("the header has no format line"))?;
+    // An item without properties takes no bytes, so that no length of the
+    // body could bound how many of them are stepped over.
+    if let Some(e) = elements.iter().find(|e| e.props.is_empty() && e.count > 0) {
+        return Err(bad(format!(
+            "element {} declares {} items but no properties",
+            e.name, e.count
+        )));
+    }
     let count_of = |name: &str| elements.iter().find(|e| e.name == name).map(|e| e.count);
     let vertices = count_of("vertex").ok_or_else(|| bad("no vertex element"))?;
     let faces = count_of("face").ok_or_else(|| bad("no face element"))?;
@@ -263,11 +302,15 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
     })
 }
 
-/// A cursor over the body.
+/// A cursor over the body. Every number read counts towards a look at
+/// the deadline, so that no loop over items or list entries runs past it.
 struct Body<'a> {
     bytes: &'a [u8],
     pos: usize,
     format: Format,
+    deadline: Deadline,
+    /// Numbers read so far.
+    reads: usize,
 }
 
 impl Body<'_> {
@@ -275,8 +318,26 @@ impl Body<'_> {
         bad("the file ends before the elements its header declares")
     }
 
-    /// The next number (ASCII: the next word).
+    /// Bytes not yet read.
+    fn left(&self) -> usize {
+        self.bytes.len() - self.pos
+    }
+
+    /// The least bytes `n` numbers of type `s` take (ASCII: a digit and a
+    /// separator each).
+    fn min_bytes(&self, s: Scalar, n: usize) -> Option<usize> {
+        match self.format {
+            Format::Ascii => n.checked_mul(2),
+            Format::Binary { .. } => n.checked_mul(s.size()),
+        }
+    }
+
+    /// The next number (ASCII: the next word, checked against its type).
     fn read(&mut self, s: Scalar) -> Result<f64, PoseError> {
+        self.reads += 1;
+        if self.reads % DEADLINE_STRIDE == 1 && self.deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
         match self.format {
             Format::Ascii => {
                 let rest = &self.bytes[self.pos..];
@@ -304,8 +365,16 @@ impl Body<'_> {
                             String::from_utf8_lossy(&word[..word.len().min(20)])
                         ))
                     })?;
-                if s.is_integer() && v.fract() != 0.0 {
-                    return Err(bad(format!("{v} is not an integer")));
+                if let Some((lo, hi)) = s.range() {
+                    if v.fract() != 0.0 {
+                        return Err(bad(format!("{v} is not an integer")));
+                    }
+                    if !(lo..=hi).contains(&v) {
+                        return Err(bad(format!(
+                            "{v} is out of range for a {} ({lo} to {hi})",
+                            s.name()
+                        )));
+                    }
                 }
                 Ok(v)
             }
@@ -338,7 +407,12 @@ impl Body<'_> {
     /// Steps over `n` numbers of type `s`.
     fn skip(&mut self, s: Scalar, n: usize) -> Result<(), PoseError> {
         match self.format {
-            Format::Ascii => (0..n).try_for_each(|_| self.read(s).map(drop)),
+            Format::Ascii => {
+                if self.min_bytes(s, n).is_none_or(|b| b > self.left() + 1) {
+                    return Err(self.truncated());
+                }
+                (0..n).try_for_each(|_| self.read(s).map(drop))
+            }
             Format::Binary { .. } => {
                 let end = n
                     .checked_mul(s.size())
@@ -351,13 +425,23 @@ impl Body<'_> {
         }
     }
 
-    /// A list's length.
-    fn list_len(&mut self, count: Scalar) -> Result<usize, PoseError> {
+    /// A list's length, checked against the bytes left for its `item`s
+    /// before any of them is read.
+    fn list_len(&mut self, count: Scalar, item: Scalar) -> Result<usize, PoseError> {
         let n = self.read(count)?;
         if n < 0.0 {
             return Err(bad(format!("a list of length {n}")));
         }
-        Ok(n as usize)
+        let n = n as usize;
+        let left = self.left();
+        // ASCII: the last number of the file may end without a separator.
+        if self.min_bytes(item, n).is_none_or(|b| b > left + 1) {
+            return Err(bad(format!(
+                "a list of {n} {}s, more than the {left} bytes left in the file hold",
+                item.name()
+            )));
+        }
+        Ok(n)
     }
 
     /// Steps over one item of `e`.
@@ -366,7 +450,7 @@ impl Body<'_> {
             match p.kind {
                 Kind::Scalar(s) => self.skip(s, 1)?,
                 Kind::List { count, item } => {
-                    let n = self.list_len(count)?;
+                    let n = self.list_len(count, item)?;
                     self.skip(item, n)?;
                 }
             }
@@ -420,6 +504,8 @@ pub fn read(
         bytes,
         pos: h.body,
         format: h.format,
+        deadline: *deadline,
+        reads: 0,
     };
     let mut vertices: Vec<Vector3<f64>> = Vec::new();
     let mut rgb: Option<Vec<[f32; 3]>> = None;
@@ -467,7 +553,7 @@ pub fn read(
                         match p.kind {
                             Kind::Scalar(s) => *v = body.read(s)?,
                             Kind::List { count, item } => {
-                                let n = body.list_len(count)?;
+                                let n = body.list_len(count, item)?;
                                 body.skip(item, n)?;
                             }
                         }
@@ -499,33 +585,43 @@ pub fn read(
                         match p.kind {
                             Kind::Scalar(s) => body.skip(s, 1)?,
                             Kind::List { count, item } if pi == list => {
-                                let n = body.list_len(count)?;
+                                // Checked against the bytes left, the
+                                // triangle limit and the indices' range
+                                // before any index is kept.
+                                let n = body.list_len(count, item)?;
                                 if n < MIN_FACE_INDICES {
                                     return Err(bad(format!("face {fi} has {n} vertices")));
                                 }
-                                // A list longer than the rest of the file
-                                // is cut short by the reads below.
-                                idx.clear();
-                                for _ in 0..n {
-                                    let v = body.read(item)?;
-                                    idx.push(u32::try_from(v as i64).map_err(|_| {
-                                        bad(format!("face {fi} has vertex index {v}"))
-                                    })?);
-                                }
-                                if triangles.len() + n - 2 > limits.max_triangles {
+                                let fanned = triangles.len().saturating_add(n - 2);
+                                if fanned > limits.max_triangles {
                                     return Err(PoseError::MeshTooLarge {
                                         vertices: h.vertices,
-                                        triangles: triangles.len() + n - 2,
+                                        triangles: fanned,
                                         max_vertices: limits.max_vertices,
                                         max_triangles: limits.max_triangles,
                                     });
+                                }
+                                idx.clear();
+                                for _ in 0..n {
+                                    let v = body.read(item)?;
+                                    idx.push(
+                                        u32::try_from(v as i64)
+                                            .ok()
+                                            .filter(|&i| (i as usize) < h.vertices)
+                                            .ok_or_else(|| {
+                                                bad(format!(
+                                                    "face {fi} has vertex index {v} (the vertices are 0 to {})",
+                                                    h.vertices.saturating_sub(1)
+                                                ))
+                                            })?,
+                                    );
                                 }
                                 for k in 1..n - 1 {
                                     triangles.push([idx[0], idx[k], idx[k + 1]]);
                                 }
                             }
                             Kind::List { count, item } => {
-                                let n = body.list_len(count)?;
+                                let n = body.list_len(count, item)?;
                                 body.skip(item, n)?;
                             }
                         }
@@ -534,6 +630,21 @@ pub fn read(
             }
             _ => body.skip_element(e, deadline)?,
         }
+    }
+    // What follows the declared elements (ASCII: past blanks) means the
+    // header's counts do not describe the data: refused, not ignored.
+    let rest = &bytes[body.pos..];
+    let extra = match h.format {
+        Format::Ascii => rest
+            .iter()
+            .position(|b| !b.is_ascii_whitespace())
+            .map(|i| rest.len() - i),
+        Format::Binary { .. } => (!rest.is_empty()).then_some(rest.len()),
+    };
+    if let Some(n) = extra {
+        return Err(bad(format!(
+            "{n} bytes follow the last declared element: the header's counts do not match the data"
+        )));
     }
     Ok(PlyMesh {
         mesh: Mesh {
@@ -706,5 +817,100 @@ mod tests {
             Err(PoseError::DeadlineExceeded)
         ));
         assert!(read(&f, &limits(), false, &Deadline::NONE).is_ok());
+    }
+
+    /// The reading's result as its one-line message (or "ok").
+    fn outcome(f: &[u8], limits: &MeshLimits, deadline: &Deadline) -> String {
+        match read(f, limits, false, deadline) {
+            Ok(_) => "ok".into(),
+            Err(e) => {
+                let m = e.to_string();
+                assert!(!m.contains('\n'), "{m}");
+                m
+            }
+        }
+    }
+
+    const TRIANGLE: &str = "element vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n10 0 0\n0 10 0\n3 0 1 2\n";
+
+    #[test]
+    fn an_element_without_properties_is_refused_from_the_header() {
+        // 2^64-1 items of no bytes: the spin mesh of issue 42, which
+        // stepped over its items until the deadline.
+        let f = format!("ply\nformat ascii 1.0\nelement junk 18446744073709551615\n{TRIANGLE}");
+        let t = std::time::Instant::now();
+        let m = outcome(f.as_bytes(), &limits(), &Deadline::NONE);
+        assert!(m.contains("element junk declares 18446744073709551615 items but no properties"), "{m}");
+        assert!(t.elapsed() < std::time::Duration::from_millis(50));
+        // None of them is harmless.
+        let f = format!("ply\nformat ascii 1.0\nelement junk 0\n{TRIANGLE}");
+        assert_eq!(outcome(f.as_bytes(), &limits(), &Deadline::NONE), "ok");
+    }
+
+    #[test]
+    fn a_long_list_is_refused_before_its_entries_are_read() {
+        // One face of a million indices against a limit of 1000
+        // triangles: refused from its count, nothing read.
+        let mut f = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uint uchar vertex_indices\nend_header\n".to_vec();
+        f.extend(vec![0u8; 36]);
+        f.extend(1_000_000u32.to_le_bytes());
+        f.extend(vec![0u8; 1_000_000]);
+        match read(&f, &limits(), false, &Deadline::NONE) {
+            Err(PoseError::MeshTooLarge { triangles, .. }) => assert_eq!(triangles, 999_998),
+            Err(e) => panic!("{e}"),
+            Ok(_) => panic!("accepted"),
+        }
+        // A list longer than the bytes left: refused from its count.
+        let mut short = f[..f.len() - 1_000_000].to_vec();
+        short.extend(vec![1u8; 100]);
+        let m = outcome(&short, &MeshLimits::OFFLINE, &Deadline::NONE);
+        assert!(m.contains("a list of 1000000 uchars, more than the 100 bytes left"), "{m}");
+        // The ASCII form too.
+        let mut f = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uint uchar vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n4000000".to_string();
+        f.push_str(&" 0".repeat(1000));
+        let m = outcome(f.as_bytes(), &MeshLimits::OFFLINE, &Deadline::NONE);
+        assert!(m.contains("a list of 4000000 uchars"), "{m}");
+    }
+
+    #[test]
+    fn the_deadline_is_looked_at_inside_a_long_list() {
+        // After the mesh, one item of an unused element holding a list of
+        // 20 million ASCII numbers (some seconds of reading): a deadline
+        // that passes while it is read stops it there.
+        let n = 20_000_000;
+        let mut f = format!("ply\nformat ascii 1.0\n{}", TRIANGLE.replace("end_header\n", "element junk 1\nproperty list uint int stuff\nend_header\n"));
+        f.push_str(&n.to_string());
+        f.push_str(&" 1".repeat(n));
+        let soon = Deadline::at(std::time::Instant::now() + std::time::Duration::from_millis(30));
+        assert!(matches!(
+            read(f.as_bytes(), &MeshLimits::OFFLINE, false, &soon),
+            Err(PoseError::DeadlineExceeded)
+        ));
+    }
+
+    #[test]
+    fn ascii_values_keep_to_their_type_and_the_header_to_its_syntax() {
+        let cases = [
+            // A uchar count of 300.
+            ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n300 0 1 2\n", "300 is out of range for a uchar"),
+            ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty char c\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1\n1 0 0 -129\n0 1 0 1\n3 0 1 2\n", "-129 is out of range for a char"),
+            ("ply\nformat ascii 1.0\nformat binary_little_endian 1.0\nelement vertex 0\n", "a second format line"),
+            ("ply\nformat ascii 1.0\nelement vertex +3\n", "not a non-negative integer"),
+            // Data after the declared elements: a face count of 1 for 2.
+            ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 2 1 0\n", "8 bytes follow the last declared element"),
+            ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n", "face 0 has vertex index 3 (the vertices are 0 to 2)"),
+        ];
+        for (f, why) in cases {
+            let m = outcome(f.as_bytes(), &limits(), &Deadline::NONE);
+            assert!(m.contains(why), "{why}: {m}");
+        }
+        // Trailing blanks are fine; a binary file's trailing bytes not.
+        let f = format!("ply\nformat ascii 1.0\n{TRIANGLE}\n\n  \r\n");
+        assert_eq!(outcome(f.as_bytes(), &limits(), &Deadline::NONE), "ok");
+        let mut f = cube_header("", "binary_little_endian").into_bytes();
+        f.extend(cube_body());
+        f.push(b'\n');
+        let m = outcome(&f, &limits(), &Deadline::NONE);
+        assert!(m.contains("1 bytes follow"), "{m}");
     }
 }

@@ -1,0 +1,114 @@
+//! The lanes: slow poses keep to theirs, readiness does not follow them.
+
+use super::*;
+
+/// A pose that keeps the pose pool busy until its deadline: a dense mesh
+/// filling several image widths.
+fn dear_pose() -> (Vec<u8>, Value) {
+    let (_, _, truth) = box_scene();
+    let dense = Mesh::cuboid(0.15, 0.1, 0.07).subdivided(6).to_ply(true);
+    (
+        dense,
+        params(600.0, truth.rotation_rows(), [0.0, 0.0, 0.12]),
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_poses_keep_to_their_lane() {
+    let server = Server::start(
+        InferConfig {
+            pose_queue_size: 2,
+            pose_threads: 1,
+            ..InferConfig::default()
+        },
+        HttpConfig::default(),
+    )
+    .await;
+    let server = std::sync::Arc::new(server);
+    let (png, _, _) = box_scene();
+    let (dense, p) = dear_pose();
+    let slow: Vec<_> = (0..2)
+        .map(|_| {
+            let (s, png, dense, p) = (server.clone(), png.clone(), dense.clone(), p.clone());
+            tokio::spawn(async move { pose(&s, &png, &dense, p, "?timeout_ms=8000").await })
+        })
+        .collect();
+    // Both admitted and computing (or waiting for the pose thread).
+    let c = reqwest::Client::new();
+    let t = Instant::now();
+    loop {
+        let text = c
+            .get(server.url("/metrics"))
+            .send()
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        if text.contains("sdhop_lane_taken{lane=\"pose\"} 2") {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(4), "{text}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // A third pose is refused at once, naming its lane.
+    let (status, body, took) = pose(&server, &png, &dense, p.clone(), "").await;
+    assert_eq!(status, 503, "{body}");
+    assert!(
+        body["error"].as_str().unwrap().contains("pose lane"),
+        "{body}"
+    );
+    assert!(took < Duration::from_millis(1000), "{took:?}");
+    // Readiness does not follow a full lane: the pod still serves
+    // /detect, and taking it out of the Service would take /detect down
+    // wherever every pod's pose lane is full (it answered 503 here).
+    for _ in 0..5 {
+        let r = c.get(server.url("/health/ready")).send().await.unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+    }
+    // The saturation shows in /metrics, for an autoscaler.
+    let text = c
+        .get(server.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        text.contains("sdhop_lane_occupancy{lane=\"pose\"} 1\n"),
+        "{text}"
+    );
+    assert!(
+        text.contains("sdhop_lane_rejected_total{lane=\"pose\"} 1\n"),
+        "{text}"
+    );
+    // Detections are served meanwhile, well before the poses end.
+    let img = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
+    let t = Instant::now();
+    for _ in 0..3 {
+        let r = c
+            .post(server.url("/detect?timeout_ms=5000"))
+            .header(CONTENT_TYPE, "image/png")
+            .body(img.clone())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+    }
+    let detects = t.elapsed();
+    let mut pose_times = Vec::new();
+    for s in slow {
+        let (status, body, took) = s.await.unwrap();
+        assert!(matches!(status, 200 | 422 | 503), "{status} {body}");
+        pose_times.push(took);
+    }
+    eprintln!("3 detections in {detects:?} beside poses of {pose_times:?}");
+    assert!(
+        pose_times.iter().all(|&p| detects < p),
+        "the detections waited for the poses"
+    );
+    let server = std::sync::Arc::into_inner(server).unwrap();
+    still_serving(&server).await;
+    assert!(server.stop().await);
+}
