@@ -178,3 +178,27 @@ where
         .unwrap();
     out
 }
+
+/// A raw connection that sent the headers and the first bytes of a body
+/// of `length` bytes, and then stalls.
+fn stalled(addr: &str, path: &str, ctype: &str, length: usize) -> TcpStream {
+    let mut s = TcpStream::connect(addr).unwrap();
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {ctype}\r\nContent-Length: {length}\r\n\r\n"
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(b"\xff\xd8\xff").unwrap();
+    s
+}
+
+/// The status line a raw connection reads within `wait`.
+fn status_line(s: &mut TcpStream, wait: Duration) -> String {
+    s.set_read_timeout(Some(wait)).unwrap();
+    let mut buf = [0u8; 64];
+    let n = s.read(&mut buf).unwrap_or(0);
+    String::from_utf8_lossy(&buf[..n])
+        .lines()
+        .next()
+        .unwrap_or_default()
+        .to_string()
+}
