@@ -4,7 +4,8 @@
 use super::*;
 use crate::data::load_image;
 use crate::train::ko8::{train_object_sources, Source};
-use crate::train::multiview::{train_sources, MultiViewParams, Sources};
+use crate::train::components::train_choosing_components;
+use crate::train::multiview::{MultiViewParams, Sources};
 use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{TrainError, TrainReport};
 use std::sync::Arc;
@@ -440,6 +441,6 @@ fn train_coco(
         backgrounds,
         boxes,
     };
-    let (m, mut r) = train_sources(cat, src, cache, params, mv, pb)?;
+    let (m, mut r) = train_choosing_components(cat, src, cache, params, mv, pb)?;
     Ok((m, r.rounds.pop().unwrap_or_default()))
 }

@@ -9,9 +9,8 @@
 use std::sync::Arc;
 
 use indicatif::ProgressBar;
-use serde::{Deserialize, Serialize};
 
-use super::multiview::{train_sources, MultiViewParams, Sources};
+use super::multiview::{train_sources, ComponentsCv, MultiViewParams, MultiViewReport, Sources};
 use super::views::{augment_view, background_negative, View};
 use super::{PyramidCache, TrainError, TrainParams};
 use crate::eval::bop_detect::auc_curve;
@@ -28,13 +27,30 @@ pub const TIE: f64 = 0.01;
 /// Test photographs made from each held-out view.
 const TESTS_PER_VIEW: usize = 2;
 
-/// The figures of the choice; saved in the model's provenance.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-pub struct ComponentsCv {
-    pub folds: usize,
-    /// Each candidate with its mean AUC over the folds and per fold.
-    pub candidates: Vec<(usize, f64, Vec<f64>)>,
-    pub chosen: usize,
+/// Trains the model of `label` from `src`, its number of view components
+/// chosen among `mv.choose_from` by cross-validation over the views
+/// ([`choose_components`]) when there are several and views to choose
+/// with; else with `mv.components` ([`train_sources`]).
+pub fn train_choosing_components(
+    label: &str,
+    src: Sources,
+    cache: &PyramidCache,
+    params: &TrainParams,
+    mv: &MultiViewParams,
+    progress: &ProgressBar,
+) -> Result<(Model, MultiViewReport), TrainError> {
+    if mv.choose_from.len() < 2 || src.views.is_empty() {
+        return train_sources(label, src, cache, params, mv, progress);
+    }
+    mv.validate()?;
+    let cv = choose_components(label, &src, cache, params, mv, progress)?;
+    let chosen = MultiViewParams {
+        components: cv.chosen,
+        ..mv.clone()
+    };
+    let (model, mut report) = train_sources(label, src, cache, params, &chosen, progress)?;
+    report.components_cv = Some(cv);
+    Ok((model, report))
 }
 
 /// A held-out test photograph: the image and its object's box, if any.

@@ -14,7 +14,8 @@ use rayon::prelude::*;
 
 use serde::{Deserialize, Serialize};
 
-use super::multiview::{train_sources, MultiViewParams, MultiViewReport, Sources};
+use super::components::train_choosing_components;
+use super::multiview::{MultiViewParams, MultiViewReport, Sources};
 use super::views::View;
 use super::{progress_bar, train_model, PyramidCache, TrainError, TrainParams, TrainReport};
 use crate::data::{load_image, Ko8, Sample};
@@ -272,7 +273,7 @@ pub fn train_object_sources(
         backgrounds,
         boxes,
     };
-    train_sources(label, src, cache, params, mv, progress)
+    train_choosing_components(label, src, cache, params, mv, progress)
 }
 
 /// How detection runs in an evaluation.

@@ -12,7 +12,6 @@ use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::components::{choose_components, ComponentsCv};
 use super::latent::{impute_samples, ImputeRound};
 use super::views::{
     augment_view, background_negative, group_views, view_descriptor, view_distances, AugmentParams,
@@ -274,7 +273,21 @@ fn view_samples(
     Ok(out)
 }
 
-/// Trains the model of `label` from `src` (see the module's notes).
+/// The figures of a choice of the number of components by
+/// cross-validation ([`super::components`]); saved in the model's
+/// provenance.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ComponentsCv {
+    pub folds: usize,
+    /// Each candidate with its mean AUC over the folds and per fold.
+    pub candidates: Vec<(usize, f64, Vec<f64>)>,
+    pub chosen: usize,
+}
+
+/// Trains the model of `label` from `src` with `mv.components` view
+/// components (see the module's notes; choosing their number among
+/// `mv.choose_from` by cross-validation is
+/// [`super::components::train_choosing_components`]).
 pub fn train_sources(
     label: &str,
     src: Sources,
@@ -285,18 +298,6 @@ pub fn train_sources(
 ) -> Result<(Model, MultiViewReport), TrainError> {
     mv.validate()?;
     let mut report = MultiViewReport::default();
-    let chosen;
-    let mv = if mv.choose_from.len() > 1 && !src.views.is_empty() {
-        let cv = choose_components(label, &src, cache, params, mv, progress)?;
-        chosen = MultiViewParams {
-            components: cv.chosen,
-            ..mv.clone()
-        };
-        report.components_cv = Some(cv);
-        &chosen
-    } else {
-        mv
-    };
     let ours = |s: &Sample| s.annotation.as_ref().is_some_and(|a| a.label == label);
     // Components of the masked photographs come first.
     let offset = src

@@ -20,11 +20,12 @@
 //! This file holds the search (visiting locations in order of their
 //! bound, branch and bound on the cut-off, suppression); `bounds` the
 //! stage-1 bounds, `location` one location's CRF, its stage-2 bounds and
-//! its min-cut. The masks of a detection are drawn by [`detection_masks`]
+//! its min-cut; `low_rank` the shared basis of stage 1's low-rank bound. The masks of a detection are drawn by [`detection_masks`]
 //! with [`super::mask`].
 
 mod bounds;
 mod location;
+mod low_rank;
 mod transfer;
 
 use std::time::Instant;
@@ -48,7 +49,7 @@ pub use bounds::{
     PlanarMaps,
 };
 use bounds::{overlap, positions, CliqueCounter, PlanarMap};
-pub use bounds::{LowRank, LOW_RANK};
+pub use low_rank::{LowRank, LOW_RANK};
 pub use transfer::Transfer;
 
 /// Detection settings.
