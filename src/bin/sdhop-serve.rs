@@ -252,8 +252,12 @@ fn run(args: Args) -> Result<(), String> {
             .build_global()
             .map_err(|e| e.to_string())?;
     }
-    let drain = Duration::try_from_secs_f64(args.drain_seconds)
-        .map_err(|_| format!("--drain-seconds {}: give a number of seconds, 0 or more", args.drain_seconds))?;
+    let drain = Duration::try_from_secs_f64(args.drain_seconds).map_err(|_| {
+        format!(
+            "--drain-seconds {}: give a number of seconds, 0 or more",
+            args.drain_seconds
+        )
+    })?;
     let models = load_models(&args.models_dir).map_err(|e| e.to_string())?;
     let registry = Registry::new();
     let (backend, why_not_gpu) =

@@ -3,8 +3,8 @@
 
 use super::*;
 use crate::data::load_image;
-use crate::train::ko8::{train_object_sources, Source};
 use crate::train::components::train_choosing_components;
+use crate::train::ko8::{train_object_sources, Source};
 use crate::train::multiview::{MultiViewParams, Sources};
 use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{TrainError, TrainReport};

@@ -137,7 +137,9 @@ impl DetectQuery {
                         _ => return Err(bad(&k, &v, "expected uncompressed or compressed")),
                     })
                 }
-                "timeout_ms" => q.timeout = Some(timeout_param(&v, max_timeout)?),
+                "timeout_ms" => {
+                    q.timeout = Some(timeout_param(&v, Duration::from_millis(1), max_timeout)?)
+                }
                 "transfer" => {
                     q.transfer = match v.as_ref() {
                         "true" => true,
@@ -152,13 +154,47 @@ impl DetectQuery {
     }
 }
 
-/// The `timeout_ms` query parameter, checked against the largest allowed.
-pub(super) fn timeout_param(v: &str, max_timeout: Duration) -> Result<Duration, ApiError> {
+/// The `timeout_ms` query parameter, checked against the least and the
+/// largest allowed.
+pub(super) fn timeout_param(
+    v: &str,
+    min_timeout: Duration,
+    max_timeout: Duration,
+) -> Result<Duration, ApiError> {
+    let least = min_timeout.as_millis().max(1) as u64;
     let limit = max_timeout.as_millis() as u64;
     match v.parse::<u64>() {
-        Ok(ms) if ms >= 1 && ms <= limit => Ok(Duration::from_millis(ms)),
+        Ok(ms) if ms >= least && ms <= limit => Ok(Duration::from_millis(ms)),
         _ => Err(ApiError::BadRequest(format!(
-            "query parameter timeout_ms={v:?}: must be an integer in 1..={limit}"
+            "query parameter timeout_ms={}: must be an integer in {least}..={limit}",
+            super::error::shorten(v)
+        ))),
+    }
+}
+
+/// When a body did not arrive in time (`timed_out`), the most telling
+/// error known without it: a malformed query (`query`), then a media type
+/// the route does not take (`media`), else the time-out itself. So a
+/// request whose head is already wrong is answered 4xx for it, however
+/// short its deadline.
+pub(super) fn before_body<T>(
+    timed_out: ApiError,
+    query: Result<T, ApiError>,
+    media: Result<(), ApiError>,
+) -> ApiError {
+    match (query, media) {
+        (Err(e), _) | (Ok(_), Err(e)) => e,
+        (Ok(_), Ok(())) => timed_out,
+    }
+}
+
+/// 415 unless the request's media type is one of `accepted`.
+pub(super) fn media_in(headers: &HeaderMap, accepted: &[&str], what: &str) -> Result<(), ApiError> {
+    match media_type(headers) {
+        Some(t) if accepted.contains(&t.as_str()) => Ok(()),
+        other => Err(ApiError::UnsupportedMediaType(format!(
+            "send {what}, not {}",
+            other.as_deref().unwrap_or("a body without Content-Type")
         ))),
     }
 }
@@ -320,7 +356,9 @@ fn check_format_options(format: Format, query: &DetectQuery) -> Result<(), ApiEr
         _ => None,
     };
     match conflict {
-        Some(why) => Err(ApiError::Unprocessable(format!("a label map (image/png) answer: {why}"))),
+        Some(why) => Err(ApiError::Unprocessable(format!(
+            "a label map (image/png) answer: {why}"
+        ))),
         None => Ok(()),
     }
 }
@@ -412,13 +450,24 @@ pub async fn detect(
     let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
     // The whole body before a place in the queue: a client that is not
     // sending holds none.
-    let req = super::body::buffer(
-        req,
-        cfg.max_body_bytes,
-        &state.pacing(deadline),
-        state.infer.grace_ended(),
-    )
-    .await?;
+    let types: Vec<&str> = IMAGE_TYPES
+        .iter()
+        .copied()
+        .chain(["multipart/form-data"])
+        .collect();
+    let media = media_in(
+        req.headers(),
+        &types,
+        "the image as image/jpeg, image/png or multipart/form-data",
+    );
+    let pacing = state.pacing(deadline);
+    let req = match super::body::buffer(req, cfg.max_body_bytes, &pacing, state.infer.grace_ended())
+        .await
+    {
+        Ok(req) => req,
+        Err(e @ ApiError::RequestTimeout(_)) => return Err(before_body(e, query, media)),
+        Err(e) => return Err(e),
+    };
     let query = query?;
     let format = negotiate(req.headers(), query.format)?;
     check_format_options(format, &query)?;
@@ -712,7 +761,11 @@ mod tests {
             // A malformed weight leaves its range out: none is left.
             (&["image/png;q=abc"], None, Some(Json)),
             (&["image/png;q=1.5"], None, Some(Json)),
-            (&["image/png;q=0.0001, application/json;q=0.5"], None, Some(Json)),
+            (
+                &["image/png;q=0.0001, application/json;q=0.5"],
+                None,
+                Some(Json),
+            ),
             // Both refused, or neither listed: 406.
             (&["image/png;q=0, application/json;q=0"], None, None),
             (&["text/html"], None, None),

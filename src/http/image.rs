@@ -338,7 +338,12 @@ mod tests {
 
     /// An 8x1 PNG of `colour` with stored `data`, a palette and a tRNS
     /// chunk when given.
-    fn keyed_png(colour: png::ColorType, data: &[u8], palette: Option<Vec<u8>>, trns: &[u8]) -> Vec<u8> {
+    fn keyed_png(
+        colour: png::ColorType,
+        data: &[u8],
+        palette: Option<Vec<u8>>,
+        trns: &[u8],
+    ) -> Vec<u8> {
         let mut out = Vec::new();
         let mut e = png::Encoder::new(&mut out, 8, 1);
         e.set_color(colour);
@@ -365,7 +370,12 @@ mod tests {
             &[255, 128, 0],
         );
         // Grey: level 7 is transparent.
-        let grey = keyed_png(png::ColorType::Grayscale, &[0, 1, 7, 1, 7, 0, 1, 7], None, &[0, 7]);
+        let grey = keyed_png(
+            png::ColorType::Grayscale,
+            &[0, 1, 7, 1, 7, 0, 1, 7],
+            None,
+            &[0, 7],
+        );
         // RGB: (0, 7, 0) is transparent; (0, 7, 1) is not.
         let rgb_data: Vec<u8> = [0u8, 1, 2, 1, 2, 0, 1, 2]
             .iter()

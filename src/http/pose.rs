@@ -14,7 +14,7 @@ use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
-use super::detect::{media_type, multipart_error, timeout_param};
+use super::detect::{before_body, media_in, media_type, multipart_error, timeout_param};
 use super::error::ApiError;
 use super::image::{decode, decode_mask, image_size, mask_size};
 use super::state::AppState;
@@ -33,6 +33,11 @@ struct Parts {
     params: Option<Bytes>,
 }
 
+/// The least `timeout_ms` of a pose: no pose is refined faster (the
+/// median is some 150 ms through the service), and a shorter deadline
+/// would not cover the multipart upload itself.
+pub const MIN_POSE_TIMEOUT: Duration = Duration::from_millis(100);
+
 /// The query of `POST /pose`: only `timeout_ms`, at most once.
 fn parse_query(raw: Option<&str>, max_timeout: Duration) -> Result<Option<Duration>, ApiError> {
     let mut timeout = None;
@@ -43,7 +48,7 @@ fn parse_query(raw: Option<&str>, max_timeout: Duration) -> Result<Option<Durati
                     "query parameter timeout_ms is repeated: give it once".into(),
                 ))
             }
-            "timeout_ms" => timeout = Some(timeout_param(&v, max_timeout)?),
+            "timeout_ms" => timeout = Some(timeout_param(&v, MIN_POSE_TIMEOUT, max_timeout)?),
             _ => {
                 return Err(ApiError::BadRequest(format!(
                     "query parameter {}: unknown parameter (POST /pose takes only timeout_ms)",
@@ -138,13 +143,18 @@ pub async fn pose(
             .copied()
             .flatten()
             .unwrap_or(cfg.default_timeout);
-    let req = super::body::buffer(
-        req,
-        cfg.max_pose_body_bytes,
-        &state.pacing(deadline),
-        state.infer.grace_ended(),
-    )
-    .await?;
+    let media = media_in(
+        req.headers(),
+        &["multipart/form-data"],
+        "multipart/form-data with the parts image, mesh, params and optionally mask",
+    );
+    let pacing = state.pacing(deadline);
+    let limit = cfg.max_pose_body_bytes;
+    let req = match super::body::buffer(req, limit, &pacing, state.infer.grace_ended()).await {
+        Ok(req) => req,
+        Err(e @ ApiError::RequestTimeout(_)) => return Err(before_body(e, timeout, media)),
+        Err(e) => return Err(e),
+    };
     timeout?;
     // Admission to the pose lane before keeping anything, as for /detect.
     let permit = state.infer.admit_to(Lane::Pose)?;
@@ -185,8 +195,7 @@ pub async fn pose(
         .on_pose_pool(deadline, move || {
             // The mesh first: its reading is bounded by its bytes and the
             // limits before any allocation, and by the deadline.
-            let (mesh, dropped) =
-                Mesh::read_within(&mesh, &mesh_limits, &Deadline::at(deadline))?;
+            let (mesh, dropped) = Mesh::read_within(&mesh, &mesh_limits, &Deadline::at(deadline))?;
             let image = decode(&image, &limits)?;
             let mask = mask_bytes
                 .map(|b| decode_mask(&b, &limits, Some(size)))
@@ -236,6 +245,7 @@ mod tests {
         assert_eq!(parse_query(None, max).unwrap(), None);
         for bad in [
             "timeout_ms=0",
+            "timeout_ms=99",
             "timeout_ms=x",
             "timeout_ms=20000",
             "model=cup",

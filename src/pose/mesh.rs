@@ -108,8 +108,15 @@ impl Mesh {
         self.triangles.retain(|t| {
             let [a, b, c] = t.map(|i| vertices[i as usize]);
             let (u, v) = (b - a, c - a);
-            let longest = u.norm_squared().max(v.norm_squared()).max((c - b).norm_squared());
-            if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] || u.cross(&v).norm() <= EMPTY_AREA * longest {
+            let longest = u
+                .norm_squared()
+                .max(v.norm_squared())
+                .max((c - b).norm_squared());
+            if t[0] == t[1]
+                || t[1] == t[2]
+                || t[0] == t[2]
+                || u.cross(&v).norm() <= EMPTY_AREA * longest
+            {
                 dropped.degenerate += 1;
                 return false;
             }
@@ -436,7 +443,10 @@ mod tests {
         for bytes in [clean.to_obj().into_bytes(), clean.to_ply(false)] {
             let mut with_bom = b"\xEF\xBB\xBF".to_vec();
             with_bom.extend(&bytes);
-            assert_eq!(Mesh::parse(&with_bom).unwrap(), Mesh::parse(&bytes).unwrap());
+            assert_eq!(
+                Mesh::parse(&with_bom).unwrap(),
+                Mesh::parse(&bytes).unwrap()
+            );
         }
         // Nothing left: refused.
         let flat = Mesh {

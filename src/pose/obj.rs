@@ -206,11 +206,20 @@ mod tests {
         let f = "v 0 0 0\nv\u{a0}1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\n# a comment may hold \u{a0} and \u{feff}\ng c\u{f4}t\u{e9}\n";
         match read(f.as_bytes(), &limits(), &Deadline::NONE) {
             Err(PoseError::InvalidMesh(m)) => {
-                assert!(m.contains("line 2") && m.contains("not an OBJ keyword"), "{m}")
+                assert!(
+                    m.contains("line 2") && m.contains("not an OBJ keyword"),
+                    "{m}"
+                )
             }
             other => panic!("{other:?}"),
         }
         let clean = f.replace("v\u{a0}1", "v 1");
-        assert_eq!(read(clean.as_bytes(), &limits(), &Deadline::NONE).unwrap().vertices.len(), 4);
+        assert_eq!(
+            read(clean.as_bytes(), &limits(), &Deadline::NONE)
+                .unwrap()
+                .vertices
+                .len(),
+            4
+        );
     }
 }

@@ -106,7 +106,10 @@ impl IrlsParams {
         let checks = [
             ("max_iterations", (1..=1000).contains(&self.max_iterations)),
             ("inner_steps", self.inner_steps >= 1),
-            ("sample_step", self.sample_step.is_finite() && self.sample_step >= 0.5),
+            (
+                "sample_step",
+                self.sample_step.is_finite() && self.sample_step >= 0.5,
+            ),
             (
                 "search_range",
                 self.search_range.is_finite()
@@ -114,13 +117,22 @@ impl IrlsParams {
                     && self.search_range <= MAX_RANGE as f64,
             ),
             ("min_gradient", self.min_gradient.is_finite()),
-            ("max_angle_degrees", (0.0..90.0).contains(&self.max_angle_degrees)),
-            ("crease_degrees", (0.0..180.0).contains(&self.crease_degrees)),
+            (
+                "max_angle_degrees",
+                (0.0..90.0).contains(&self.max_angle_degrees),
+            ),
+            (
+                "crease_degrees",
+                (0.0..180.0).contains(&self.crease_degrees),
+            ),
             ("tukey_c", self.tukey_c > 0.0),
             ("tolerance_px", self.tolerance_px > 0.0),
             ("max_step_px", self.max_step_px > 0.0),
             ("mask_margin_px", self.mask_margin_px <= 50),
-            ("restart_degrees", (0.0..=45.0).contains(&self.restart_degrees)),
+            (
+                "restart_degrees",
+                (0.0..=45.0).contains(&self.restart_degrees),
+            ),
             ("restart_rings", self.restart_rings <= 4),
             ("restart_depth", (0.0..0.5).contains(&self.restart_depth)),
             (

@@ -202,9 +202,7 @@ fn header(bytes: &[u8], limits: &MeshLimits) -> Result<Header, PoseError> {
         match words.as_slice() {
             ["ply"] if line_no == 1 => {}
             _ if line_no == 1 => return Err(bad("the file does not start with `ply`")),
-            ["format", ..] if format.is_some() => {
-                return Err(at("a second format line"))
-            }
+            ["format", ..] if format.is_some() => return Err(at("a second format line")),
             ["format", f, _version] => {
                 format = Some(match *f {
                     "ascii" => Format::Ascii,
@@ -840,7 +838,10 @@ mod tests {
         let f = format!("ply\nformat ascii 1.0\nelement junk 18446744073709551615\n{TRIANGLE}");
         let t = std::time::Instant::now();
         let m = outcome(f.as_bytes(), &limits(), &Deadline::NONE);
-        assert!(m.contains("element junk declares 18446744073709551615 items but no properties"), "{m}");
+        assert!(
+            m.contains("element junk declares 18446744073709551615 items but no properties"),
+            "{m}"
+        );
         assert!(t.elapsed() < std::time::Duration::from_millis(50));
         // None of them is harmless.
         let f = format!("ply\nformat ascii 1.0\nelement junk 0\n{TRIANGLE}");
@@ -864,7 +865,10 @@ mod tests {
         let mut short = f[..f.len() - 1_000_000].to_vec();
         short.extend(vec![1u8; 100]);
         let m = outcome(&short, &MeshLimits::OFFLINE, &Deadline::NONE);
-        assert!(m.contains("a list of 1000000 uchars, more than the 100 bytes left"), "{m}");
+        assert!(
+            m.contains("a list of 1000000 uchars, more than the 100 bytes left"),
+            "{m}"
+        );
         // The ASCII form too.
         let mut f = "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uint uchar vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n4000000".to_string();
         f.push_str(&" 0".repeat(1000));
@@ -878,7 +882,13 @@ mod tests {
         // 20 million ASCII numbers (some seconds of reading): a deadline
         // that passes while it is read stops it there.
         let n = 20_000_000;
-        let mut f = format!("ply\nformat ascii 1.0\n{}", TRIANGLE.replace("end_header\n", "element junk 1\nproperty list uint int stuff\nend_header\n"));
+        let mut f = format!(
+            "ply\nformat ascii 1.0\n{}",
+            TRIANGLE.replace(
+                "end_header\n",
+                "element junk 1\nproperty list uint int stuff\nend_header\n"
+            )
+        );
         f.push_str(&n.to_string());
         f.push_str(&" 1".repeat(n));
         let soon = Deadline::at(std::time::Instant::now() + std::time::Duration::from_millis(30));

@@ -148,7 +148,10 @@ async fn meshes_cost_what_their_bytes_allow_whatever_they_declare() {
     let (status, body, took) = pose_at(&base, &png, SPIN_PLY, p.clone(), "?timeout_ms=3000").await;
     assert_eq!(status, 422, "{body}");
     let msg = body["error"].as_str().unwrap();
-    assert!(msg.contains("element junk") && msg.contains("no properties"), "{msg}");
+    assert!(
+        msg.contains("element junk") && msg.contains("no properties"),
+        "{msg}"
+    );
     assert!(took < Duration::from_millis(500), "{took:?}");
     // One face of 60 M indices (60 MB, under the body limit): refused
     // from its count against the triangle limit before an index is kept
@@ -168,7 +171,13 @@ async fn meshes_cost_what_their_bytes_allow_whatever_they_declare() {
     ascii.extend(b" 0 1 2".repeat(1_000_000));
     let (status, body, _) = pose_at(&base, &png, &ascii, p, "?timeout_ms=20000").await;
     assert_eq!(status, 422, "{body}");
-    assert!(body["error"].as_str().unwrap().contains("a list of 60000000"), "{body}");
+    assert!(
+        body["error"]
+            .as_str()
+            .unwrap()
+            .contains("a list of 60000000"),
+        "{body}"
+    );
     let _ = child.kill();
     let _ = child.wait();
 }
@@ -222,14 +231,20 @@ async fn equivalent_meshes_give_the_same_pose_and_invisible_characters_are_named
     let (status, body, _) = pose(&server, &png, nbsp.as_bytes(), p.clone(), "").await;
     assert_eq!(status, 422, "{body}");
     let msg = body["error"].as_str().unwrap();
-    assert!(msg.contains("OBJ line 1") && msg.contains("not an OBJ keyword"), "{msg}");
+    assert!(
+        msg.contains("OBJ line 1") && msg.contains("not an OBJ keyword"),
+        "{msg}"
+    );
     // Data after the declared elements: a face count short of the faces.
     let ply = String::from_utf8(mesh.to_ply(false)).unwrap();
     let short = ply.replace("element face 12", "element face 10");
     let (status, body, _) = pose(&server, &png, short.as_bytes(), p, "").await;
     assert_eq!(status, 422, "{body}");
     assert!(
-        body["error"].as_str().unwrap().contains("follow the last declared element"),
+        body["error"]
+            .as_str()
+            .unwrap()
+            .contains("follow the last declared element"),
         "{body}"
     );
     assert!(server.stop().await);

@@ -143,9 +143,15 @@ async fn messages_name_the_problem_in_one_line() {
         q
     };
     for (bad, says) in [
-        (with(&|q| q["start_uncertainty"] = json!({"degrees": -1})), "start_uncertainty.degrees"),
+        (
+            with(&|q| q["start_uncertainty"] = json!({"degrees": -1})),
+            "start_uncertainty.degrees",
+        ),
         (with(&|q| q["max_iterations"] = json!(0)), "max_iterations"),
-        (with(&|q| q["max_iterations"] = json!(1_000_000_000u64)), "max_iterations"),
+        (
+            with(&|q| q["max_iterations"] = json!(1_000_000_000u64)),
+            "max_iterations",
+        ),
         (with(&|q| q["intrinsics"]["fx"] = json!(0)), "intrinsics.fx"),
     ] {
         let cube = Mesh::cuboid(0.15, 0.1, 0.07).to_obj().into_bytes();
@@ -153,7 +159,10 @@ async fn messages_name_the_problem_in_one_line() {
         assert_eq!(status, 422, "{says}: {body}");
         let msg = body["error"].as_str().unwrap();
         assert!(msg.contains(says), "{says}: {msg}");
-        assert!(!msg.contains("Params {") && !msg.contains("Intrinsics {"), "{msg}");
+        assert!(
+            !msg.contains("Params {") && !msg.contains("Intrinsics {"),
+            "{msg}"
+        );
     }
     // An image of another format says which, in words.
     let mut gif = b"GIF89a".to_vec();
@@ -359,7 +368,11 @@ async fn repeated_options_and_weights_of_accept_are_heeded() {
         ("", "image/png;q=0, application/json;q=0", None),
         ("", "image/png;q=0", None),
         ("?format=png", "image/png;q=0, */*", None),
-        ("?format=png", "image/png;q=0.2, application/json", Some(true)),
+        (
+            "?format=png",
+            "image/png;q=0.2, application/json",
+            Some(true),
+        ),
     ] {
         let r = detect(query, Some(accept)).await.unwrap();
         let status = r.status();
@@ -438,5 +451,80 @@ fn help_documents_every_flag() {
         "--pose-threads",
     ] {
         assert!(after(flag).trim().len() > 20, "{flag}: {}", after(flag));
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_head_is_answered_4xx_however_short_the_deadline() {
+    // A malformed query's deadline is the default one, and its stalled
+    // body is cut once the grace has passed.
+    let server = Server::start(
+        InferConfig::default(),
+        HttpConfig {
+            body_grace: Duration::from_millis(300),
+            ..HttpConfig::default()
+        },
+    )
+    .await;
+    let addr = server.base.trim_start_matches("http://").to_string();
+    // A malformed query with a body that has not arrived in time: the
+    // query's 400, not the time-out's 408 (a fuzzer's invalid request
+    // must be told it is invalid).
+    let mut s = stalled(
+        &addr,
+        "/detect?timeout_ms=50&masks=bogus",
+        "image/png",
+        1000,
+    );
+    let line = tokio::task::spawn_blocking(move || status_line(&mut s, Duration::from_secs(3)))
+        .await
+        .unwrap();
+    assert!(line.starts_with("HTTP/1.1 400"), "{line}");
+    // A media type /detect does not take, likewise: 415.
+    let mut s = stalled(&addr, "/detect?timeout_ms=50", "text/plain", 1000);
+    let line = tokio::task::spawn_blocking(move || status_line(&mut s, Duration::from_secs(3)))
+        .await
+        .unwrap();
+    assert!(line.starts_with("HTTP/1.1 415"), "{line}");
+    // A good head: the time-out.
+    let mut s = stalled(&addr, "/detect?timeout_ms=50", "image/png", 1000);
+    let line = tokio::task::spawn_blocking(move || status_line(&mut s, Duration::from_secs(3)))
+        .await
+        .unwrap();
+    assert!(line.starts_with("HTTP/1.1 408"), "{line}");
+    // /pose takes no deadline under 100 ms (no pose is refined faster):
+    // 400 naming the range, whatever the body.
+    let (png, mesh, truth) = box_scene();
+    let p = params(600.0, truth.rotation_rows(), [0.0, 0.0, 0.5]);
+    let (status, body, _) = pose(&server, &png, &mesh.to_ply(true), p, "?timeout_ms=1").await;
+    assert_eq!(status, 400, "{body}");
+    assert!(body["error"].as_str().unwrap().contains("100..="), "{body}");
+    assert!(server.stop().await);
+}
+
+#[test]
+fn the_spec_refuses_an_empty_model_name_as_the_server_does() {
+    // `model=a,,b` is answered 400 ("empty model name"); the schema of
+    // the parameter's items refuses it too, so that a client (or a
+    // fuzzer) checking against openapi.yaml knows it is invalid.
+    let spec: Value =
+        serde_norway::from_str(&std::fs::read_to_string("openapi.yaml").unwrap()).unwrap();
+    let model = spec["paths"]["/detect"]["post"]["parameters"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "model")
+        .unwrap();
+    let items = jsonschema::validator_for(&model["schema"]["items"]).unwrap();
+    for (name, valid) in [
+        ("a", true),
+        ("a,b", true),
+        (" a , b ", true),
+        ("a,,b", false),
+        ("a, ,b", false),
+        (",a", false),
+        ("", false),
+    ] {
+        assert_eq!(items.is_valid(&json!(name)), valid, "{name:?}");
     }
 }

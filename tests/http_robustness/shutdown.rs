@@ -141,24 +141,35 @@ async fn sigterm_drains_and_a_slow_upload_gets_a_status() {
             .expect("a readiness probe during the drain was refused");
         assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE);
         let body: Value = r.json().await.unwrap();
-        assert!(body["error"].as_str().unwrap().contains("draining"), "{body}");
+        assert!(
+            body["error"].as_str().unwrap().contains("draining"),
+            "{body}"
+        );
         probes += 1;
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     assert!(probes >= 5, "{probes} probes");
     // The upload is answered as the grace period ends (drain 2 s, grace
     // 2 s: 3.5 s after SIGTERM), not cut without a status.
-    let line = tokio::task::spawn_blocking(move || status_line(&mut upload, Duration::from_secs(6)))
-        .await
-        .unwrap();
+    let line =
+        tokio::task::spawn_blocking(move || status_line(&mut upload, Duration::from_secs(6)))
+            .await
+            .unwrap();
     let answered = sent.elapsed();
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    assert!(line.starts_with("HTTP/1.1 503"), "{line:?} after {answered:?}");
+    assert!(
+        line.starts_with("HTTP/1.1 503"),
+        "{line:?} after {answered:?}"
+    );
     assert!(answered > Duration::from_secs(3), "{answered:?}");
     let status = tokio::task::spawn_blocking(move || child.wait().unwrap())
         .await
         .unwrap();
     assert!(status.code().is_some(), "killed by a signal: {status:?}");
-    assert!(sent.elapsed() < Duration::from_secs(5), "{:?}", sent.elapsed());
+    assert!(
+        sent.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        sent.elapsed()
+    );
     sender.join().unwrap();
 }

@@ -99,4 +99,3 @@ impl LowRank {
         Self { basis, filters }
     }
 }
-
