@@ -9,7 +9,11 @@ answered meanwhile. Then the cheap refusals: a pose whose label the model
 lacks, a label on a single-object model, a mask of the wrong size, each
 timed (they must not wait for a detection).
 
-usage: benches/lanes.py [--poses 8] [--detects 30] [--port 18091]
+With --seconds S the detections go on for S seconds instead of
+--detects requests, and the pose lane's occupancy is sampled from
+/metrics meanwhile (the share of samples with every place taken).
+
+usage: benches/lanes.py [--poses 8] [--detects 30] [--seconds S] [--port 18091]
        [--data ../shared/data/lmo_dev] [--server target/release/sdhop-serve]
 """
 import argparse
@@ -31,6 +35,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--poses", type=int, default=8)
     ap.add_argument("--detects", type=int, default=30)
+    ap.add_argument("--seconds", type=float, default=0,
+                    help="send /detect for this long instead of --detects requests")
     ap.add_argument("--port", type=int, default=18091)
     ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data", "lmo_dev"))
     ap.add_argument("--server", default=os.path.join(ROOT, "target", "release", "sdhop-serve"))
@@ -69,9 +75,17 @@ def main():
             while not stop.is_set():
                 pose_results.append(pose({"intrinsics": intr, "model": "duck"}))
 
+        occupancy = Counter()
+
         def ready_loop():
             while not stop.is_set():
                 ready[request(base + "/health/ready", timeout=2)[0]] += 1
+                try:
+                    text = urllib.request.urlopen(base + "/metrics", timeout=2).read().decode()
+                    full = 'sdhop_lane_occupancy{lane="pose"} 1\n' in text
+                    occupancy["full" if full else "not full"] += 1
+                except OSError:
+                    occupancy["no answer"] += 1
                 time.sleep(0.1)
 
         threads = [threading.Thread(target=pose_loop) for _ in range(a.poses)]
@@ -79,8 +93,9 @@ def main():
         for t in threads:
             t.start()
         time.sleep(1.0)
-        detects = [request(base + "/detect?model=duck&timeout_ms=5000", photo, "image/png")
-                   for _ in range(a.detects)]
+        detects, t0 = [], time.monotonic()
+        while (time.monotonic() - t0 < a.seconds) if a.seconds > 0 else len(detects) < a.detects:
+            detects.append(request(base + "/detect?model=duck&timeout_ms=5000", photo, "image/png"))
         stop.set()
         for t in threads:
             t.join()
@@ -93,7 +108,9 @@ def main():
 
         print(f"/detect (5 s deadline), {a.poses} no-start poses in flight: {summary(detects)}")
         print(f"/pose without a start pose: {summary(pose_results)}")
-        print(f"/health/ready meanwhile: {dict(ready)}")
+        probes = sum(ready.values())
+        print(f"/health/ready meanwhile: {dict(ready)} ({ready[503] / max(probes, 1):.0%} answered 503); "
+              f"pose lane sampled from /metrics: {dict(occupancy)}")
         from PIL import Image
         buf = io.BytesIO()
         Image.new("L", (4000, 4000)).save(buf, format="PNG")

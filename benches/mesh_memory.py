@@ -17,6 +17,16 @@ Cases (each mesh is made here, nothing is read from ../shared):
   at-limit       a UV sphere of 1 M triangles (the default limit), a real
                  pose request with a 2 s deadline (and with 30 s)
   six-at-limit   six of those at once, 8 s deadlines
+  spin           216 bytes: `element junk 18446744073709551615` without
+                 properties before a triangle (422 from the header; it spun
+                 a core until its deadline)
+  long-face      a binary PLY of one face of 60 M uchar indices (60 MB;
+                 413 from the list's count before an index is kept)
+  eight-long     eight of those at once (the pose lane's size)
+  long-ascii     the ASCII form: one face declaring 60 M indices, 6 MB of
+                 them present (422 from the bytes left)
+
+Each row also gives the server's CPU seconds for the case (from /proc).
 
 usage: benches/mesh_memory.py [--port 18090] [--models-dir models]
        [--server target/release/sdhop-serve]
@@ -74,6 +84,25 @@ class Sampler:
         self.run = False
         self.t.join()
         return max(self.peak, rss_mb(self.pid))
+
+
+def cpu_s(pid):
+    """User and system CPU seconds of `pid` so far."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+SPIN = (b"ply\nformat ascii 1.0\nelement junk 18446744073709551615\nelement vertex 3\nproperty float x\n"
+        b"property float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+        b"end_header\n0 0 0\n10 0 0\n0 10 0\n3 0 1 2\n")
+
+
+def long_face(n):
+    head = (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            b"property float z\nelement face 1\nproperty list uint uchar vertex_indices\nend_header\n")
+    v = np.array([[0, 0, 500], [50, 0, 500], [0, 50, 500]], "<f4").tobytes()
+    return head + v + np.uint32(n).tobytes() + (np.arange(n, dtype=np.uint32) % 3).astype(np.uint8).tobytes()
 
 
 def png_640x480():
@@ -166,18 +195,25 @@ def main():
         bomb = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf " + b"1 2 3 4 " * 7_500_000 + b"\n"
         v, f = uv_sphere(1_000_000)
         at_limit = ply_binary(v, f)
+        face = long_face(60_000_000)
+        ascii_face = (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                      b"property float z\nelement face 1\nproperty list uint uchar vertex_indices\nend_header\n"
+                      b"0 0 500\n50 0 500\n0 50 500\n60000000" + b" 0 1 2" * 1_000_000 + b"\n")
         print(f"meshes: junk {len(junk) / 1e6:.1f} MB, over-limit {len(over) / 1e6:.1f} MB "
               f"({len(big_f)} triangles), polygon bomb {len(bomb) / 1e6:.1f} MB, "
               f"at-limit {len(at_limit) / 1e6:.1f} MB ({len(f)} triangles)")
         idle = settle(srv.pid)
         print(f"idle resident memory {idle:.0f} MB")
         print(f"{'case':14s} {'status':>8s} {'latency s':>10s} {'deadline s':>10s} {'peak above idle MB':>19s} "
-              f"{'idle after MB':>13s}  message")
+              f"{'idle after MB':>13s} {'CPU s':>6s}  message")
         for name, mesh, deadline_ms, n in [("junk-element", junk, 2000, 1), ("over-limit", over, 2000, 1),
                                            ("polygon-bomb", bomb, 2000, 1), ("at-limit", at_limit, 2000, 1),
                                            ("at-limit-30s", at_limit, 30000, 1),
-                                           ("six-at-limit", at_limit, 8000, 6)]:
+                                           ("six-at-limit", at_limit, 8000, 6),
+                                           ("spin", SPIN, 3000, 1), ("long-face", face, 20000, 1),
+                                           ("eight-long", face, 20000, 8), ("long-ascii", ascii_face, 20000, 1)]:
             before = rss_mb(srv.pid)
+            cpu0 = cpu_s(srv.pid)
             s = Sampler(srv.pid)
             s.start()
             results = [None] * n
@@ -188,11 +224,14 @@ def main():
             for t in ts:
                 t.join()
             peak = s.stop()
+            cpu = cpu_s(srv.pid) - cpu0
             after = settle(srv.pid)
             statuses = ",".join(str(r[0]) for r in results)
             lat = max(r[1] for r in results)
+            if len(set(r[0] for r in results)) == 1:
+                statuses = f"{results[0][0]}x{n}" if n > 1 else str(results[0][0])
             print(f"{name:14s} {statuses:>8s} {lat:10.2f} {deadline_ms / 1000:10.1f} {peak - before:19.0f} "
-                  f"{after:13.0f}  {results[0][2][:90]}")
+                  f"{after:13.0f} {cpu:6.2f}  {results[0][2][:90]}")
     finally:
         srv.terminate()
         srv.wait()

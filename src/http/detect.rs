@@ -363,6 +363,9 @@ fn check_format_options(format: Format, query: &DetectQuery) -> Result<(), ApiEr
     }
 }
 
+/// The most parts of a multipart `/detect` body before its `image` part.
+pub const MAX_OTHER_PARTS: usize = 16;
+
 /// The image bytes of a request, within the body limit.
 async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
     let too_large = || ApiError::PayloadTooLarge(format!("the body exceeds {limit} bytes"));
@@ -382,26 +385,33 @@ async fn image_bytes(req: Request, limit: usize) -> Result<Vec<u8>, ApiError> {
             let mut mp = Multipart::from_request(req, &())
                 .await
                 .map_err(|e| ApiError::BadRequest(e.body_text()))?;
-            // Every part is read, so that the answer never leaves body
-            // unread (which resets the connection); the first `image` wins.
-            let mut image = None;
+            // The body is already in memory (see `body::buffer`): the
+            // first `image` part is taken and the rest left unparsed; at
+            // most MAX_OTHER_PARTS other parts come before it (a body of
+            // many empty parts was parsed whole on the runtime's thread).
+            let mut others = 0usize;
             while let Some(field) = mp
                 .next_field()
                 .await
                 .map_err(|e| multipart_error(&e, limit))?
             {
-                let is_image = field.name() == Some("image");
-                let bytes = field
-                    .bytes()
-                    .await
-                    .map_err(|e| multipart_error(&e, limit))?;
-                if is_image && image.is_none() {
-                    image = Some(bytes.to_vec());
+                if field.name() == Some("image") {
+                    let bytes = field
+                        .bytes()
+                        .await
+                        .map_err(|e| multipart_error(&e, limit))?;
+                    return Ok(bytes.to_vec());
+                }
+                others += 1;
+                if others > MAX_OTHER_PARTS {
+                    return Err(ApiError::BadRequest(format!(
+                        "more than {MAX_OTHER_PARTS} parts before the `image` part"
+                    )));
                 }
             }
-            image.ok_or_else(|| {
-                ApiError::BadRequest("the multipart body has no `image` part".into())
-            })
+            Err(ApiError::BadRequest(
+                "the multipart body has no `image` part".into(),
+            ))
         }
         other => {
             let e = ApiError::UnsupportedMediaType(format!(

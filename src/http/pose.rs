@@ -77,40 +77,40 @@ async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
         .await
         .map_err(|e| ApiError::BadRequest(e.body_text()))?;
     let mut parts = Parts::default();
-    // A refused part is answered once the body is read (within the limit),
-    // so that the client sees the answer rather than a reset connection.
-    let mut refused = None;
+    // The body is already in memory (see `body::buffer`), so the first
+    // unknown or repeated part is answered at once: a body of a million
+    // empty parts costs no more than its first wrong one (it took 0.8 s
+    // of the runtime's thread, past a 300 ms deadline).
     while let Some(field) = mp
         .next_field()
         .await
         .map_err(|e| multipart_error(&e, limit))?
     {
         let name = field.name().unwrap_or_default().to_string();
-        let bytes = field
-            .bytes()
-            .await
-            .map_err(|e| multipart_error(&e, limit))?;
         let slot = match name.as_str() {
             "image" => &mut parts.image,
             "mesh" => &mut parts.mesh,
             "mask" => &mut parts.mask,
             "params" => &mut parts.params,
             _ => {
-                refused.get_or_insert(format!(
-                    "unknown part {name:?}: expected image, mesh, mask and params"
-                ));
-                continue;
+                return Err(ApiError::BadRequest(format!(
+                    "unknown part {}: expected image, mesh, mask and params",
+                    super::error::shorten(&name)
+                )))
             }
         };
         if slot.is_some() {
-            refused.get_or_insert(format!("the part {name:?} is repeated"));
+            return Err(ApiError::BadRequest(format!(
+                "the part {name:?} is repeated"
+            )));
         }
+        let bytes = field
+            .bytes()
+            .await
+            .map_err(|e| multipart_error(&e, limit))?;
         *slot = Some(bytes);
     }
-    match refused {
-        Some(why) => Err(ApiError::BadRequest(why)),
-        None => Ok(parts),
-    }
+    Ok(parts)
 }
 
 /// The `params` part: 400 when it is not JSON, 422 when it is JSON of the
