@@ -74,8 +74,9 @@ struct Args {
     #[arg(long, env = "SDHOP_MAX_MESH_TRIANGLES", default_value_t = DEFAULT_MESH_LIMITS.max_triangles)]
     max_mesh_triangles: usize,
     /// POST /pose requests admitted at once (waiting or computing), in a
-    /// lane of their own: more are answered 503 while /detect is still
-    /// served, and readiness answers 503 while every place is taken.
+    /// lane of their own: more are answered 503 with Retry-After while
+    /// /detect is still served and readiness stays 200 (the lane's
+    /// occupancy is in /metrics, for an autoscaler).
     #[arg(long, env = "SDHOP_POSE_QUEUE_SIZE", default_value_t = 8)]
     pose_queue_size: usize,
     /// Threads of the pose pool, which refines poses (0: one per core). They

@@ -402,14 +402,6 @@ impl Infer {
         (counter.load(Ordering::Acquire), cap)
     }
 
-    /// The first lane whose every place is taken, if any.
-    pub fn saturated(&self) -> Option<(Lane, usize)> {
-        Lane::ALL.into_iter().find_map(|l| {
-            let (n, cap) = self.lane(l);
-            (n >= cap).then_some((l, cap))
-        })
-    }
-
     /// New requests are admitted.
     pub fn accepting(&self) -> bool {
         self.shared.accepting.load(Ordering::Acquire)

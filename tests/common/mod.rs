@@ -153,3 +153,27 @@ pub async fn wait_ready(base: &str) {
     }
     panic!("the server never became ready");
 }
+
+/// The server's `/metrics` text.
+pub async fn metrics_text(base: &str) -> String {
+    reqwest::get(format!("{base}/metrics"))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap()
+}
+
+/// Waits at most `within` until the server's `/metrics` holds `line`;
+/// returns the text that did.
+pub async fn wait_for_metric(base: &str, line: &str, within: Duration) -> String {
+    let t = std::time::Instant::now();
+    loop {
+        let text = metrics_text(base).await;
+        if text.contains(line) {
+            return text;
+        }
+        assert!(t.elapsed() < within, "no {line} within {within:?}: {text}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}

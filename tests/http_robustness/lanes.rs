@@ -35,22 +35,12 @@ async fn slow_poses_keep_to_their_lane() {
         .collect();
     // Both admitted and computing (or waiting for the pose thread).
     let c = reqwest::Client::new();
-    let t = Instant::now();
-    loop {
-        let text = c
-            .get(server.url("/metrics"))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
-        if text.contains("sdhop_lane_taken{lane=\"pose\"} 2") {
-            break;
-        }
-        assert!(t.elapsed() < Duration::from_secs(4), "{text}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_for_metric(
+        &server.base,
+        "sdhop_lane_taken{lane=\"pose\"} 2",
+        Duration::from_secs(4),
+    )
+    .await;
     // A third pose is refused at once, naming its lane.
     let (status, body, took) = pose(&server, &png, &dense, p.clone(), "").await;
     assert_eq!(status, 503, "{body}");
@@ -67,14 +57,7 @@ async fn slow_poses_keep_to_their_lane() {
         assert_eq!(r.status(), StatusCode::OK);
     }
     // The saturation shows in /metrics, for an autoscaler.
-    let text = c
-        .get(server.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let text = metrics_text(&server.base).await;
     assert!(
         text.contains("sdhop_lane_occupancy{lane=\"pose\"} 1\n"),
         "{text}"

@@ -28,20 +28,7 @@ async fn sigterm_exits_within_the_grace_period_while_a_long_computation_runs() {
             .send(),
     );
     // Until the worker computes it (the warm-up was the first batch).
-    let t = Instant::now();
-    loop {
-        let text = reqwest::get(format!("{base}/metrics"))
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
-        if text.contains("sdhop_batch_size_count 2") {
-            break;
-        }
-        assert!(t.elapsed() < Duration::from_secs(5), "never computed");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_for_metric(&base, "sdhop_batch_size_count 2", Duration::from_secs(5)).await;
     assert!(!long.is_finished(), "the computation must still run");
     // Two more behind it in the queue (one request per batch).
     let small = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
