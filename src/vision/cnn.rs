@@ -196,36 +196,89 @@ impl Pointwise {
 }
 
 impl Depthwise {
+    /// Tap by tap over whole output rows: for each kernel weight, the
+    /// output columns whose input column lies inside the image get
+    /// `weight * input` added (a contiguous, vectorised loop at stride 1),
+    /// so that no sample tests the border.
     fn apply(&self, x: &FeatureMap) -> FeatureMap {
         let (k, s) = (self.k, self.stride);
         let (ow, left) = same_padding(x.width, k, s);
         let (oh, top) = same_padding(x.height, k, s);
         let mut out = FeatureMap::zeros(self.channels, ow, oh);
-        let (w, h) = (x.width as isize, x.height as isize);
+        let plane = x.width * x.height;
+        // At stride 2 each row is split into its even and odd samples, so
+        // that every tap reads a contiguous run of one of them.
+        let half = x.width.div_ceil(2);
+        let mut phases = if s == 2 {
+            vec![0.0f32; 2 * half * x.height]
+        } else {
+            Vec::new()
+        };
         for c in 0..self.channels {
-            let src = &x.data[c * x.width * x.height..(c + 1) * x.width * x.height];
+            let src = &x.data[c * plane..(c + 1) * plane];
+            if s == 2 {
+                for (row, split) in src
+                    .chunks_exact(x.width)
+                    .zip(phases.chunks_exact_mut(2 * half))
+                {
+                    let (even, odd) = split.split_at_mut(half);
+                    for (i, &v) in row.iter().enumerate() {
+                        if i % 2 == 0 {
+                            even[i / 2] = v;
+                        } else {
+                            odd[i / 2] = v;
+                        }
+                    }
+                }
+            }
             let kernel = &self.weight[c * k * k..(c + 1) * k * k];
             let dst = &mut out.data[c * ow * oh..(c + 1) * ow * oh];
-            for oy in 0..oh {
-                let y0 = (oy * s) as isize - top as isize;
-                for ox in 0..ow {
-                    let x0 = (ox * s) as isize - left as isize;
-                    let mut acc = self.bias[c];
-                    for dy in 0..k {
-                        let y = y0 + dy as isize;
-                        if y < 0 || y >= h {
+            dst.fill(self.bias[c]);
+            for dy in 0..k {
+                for oy in 0..oh {
+                    let Some(y) = (oy * s + dy).checked_sub(top).filter(|&y| y < x.height) else {
+                        continue;
+                    };
+                    let row = &src[y * x.width..(y + 1) * x.width];
+                    let split = if s == 2 {
+                        &phases[y * 2 * half..(y + 1) * 2 * half]
+                    } else {
+                        &[][..]
+                    };
+                    let out_row = &mut dst[oy * ow..(oy + 1) * ow];
+                    for dx in 0..k {
+                        let wv = kernel[dy * k + dx];
+                        // Output columns whose input column
+                        // ox * s + dx - left lies in 0..width.
+                        let lo = left.saturating_sub(dx).div_ceil(s);
+                        let hi = ((x.width + left - dx - 1) / s + 1).min(ow);
+                        if lo >= hi {
                             continue;
                         }
-                        let row = &src[y as usize * x.width..];
-                        for dx in 0..k {
-                            let xx = x0 + dx as isize;
-                            if xx >= 0 && xx < w {
-                                acc += kernel[dy * k + dx] * row[xx as usize];
+                        let first = lo * s + dx - left;
+                        if s == 1 {
+                            for (o, &v) in out_row[lo..hi].iter_mut().zip(&row[first..]) {
+                                *o += wv * v;
+                            }
+                        } else if s == 2 {
+                            // Input columns first, first + 2, ...: one phase.
+                            let start = (first % 2) * half + first / 2;
+                            for (o, &v) in out_row[lo..hi].iter_mut().zip(&split[start..]) {
+                                *o += wv * v;
+                            }
+                        } else {
+                            for (o, &v) in out_row[lo..hi]
+                                .iter_mut()
+                                .zip(row[first..].iter().step_by(s))
+                            {
+                                *o += wv * v;
                             }
                         }
                     }
-                    dst[oy * ow + ox] = relu6(acc);
                 }
+            }
+            for v in dst.iter_mut() {
+                *v = relu6(*v);
             }
         }
         out
