@@ -363,6 +363,9 @@ fn check_format_options(format: Format, query: &DetectQuery) -> Result<(), ApiEr
     }
 }
 
+/// The media types of a `/detect` body.
+const BODY_TYPES: [&str; 3] = [IMAGE_TYPES[0], IMAGE_TYPES[1], "multipart/form-data"];
+
 /// The most parts of a multipart `/detect` body before its `image` part.
 pub const MAX_OTHER_PARTS: usize = 16;
 
@@ -460,14 +463,9 @@ pub async fn detect(
     let deadline = arrived + timeout.unwrap_or(cfg.default_timeout);
     // The whole body before a place in the queue: a client that is not
     // sending holds none.
-    let types: Vec<&str> = IMAGE_TYPES
-        .iter()
-        .copied()
-        .chain(["multipart/form-data"])
-        .collect();
     let media = media_in(
         req.headers(),
-        &types,
+        &BODY_TYPES,
         "the image as image/jpeg, image/png or multipart/form-data",
     );
     let pacing = state.pacing(deadline);
@@ -490,15 +488,14 @@ pub async fn detect(
     let image = tokio::task::spawn_blocking(move || decode(&bytes, &limits))
         .await
         .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
-    // A label map is drawn from the masks asked for (refined or raw).
-    let masks = query.masks;
     let task = DetectTask {
         image: Arc::new(image),
         models,
         opts: DetectOptions {
             threshold: query.threshold,
             max_detections: query.max_detections,
-            masks,
+            // A label map is drawn from the masks asked for (refined or raw).
+            masks: query.masks,
             prune: true,
             max_pixels: limits.max_pixels,
             region: None,

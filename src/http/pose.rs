@@ -14,7 +14,7 @@ use axum::extract::{FromRequest, Multipart, RawQuery, Request, State};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 
-use super::detect::{before_body, media_in, media_type, multipart_error, timeout_param};
+use super::detect::{before_body, media_in, multipart_error, timeout_param};
 use super::error::ApiError;
 use super::image::{decode, decode_mask, image_size, mask_size};
 use super::state::AppState;
@@ -63,16 +63,6 @@ fn parse_query(raw: Option<&str>, max_timeout: Duration) -> Result<Option<Durati
 /// Reads the multipart body within the route's body limit; unknown or
 /// repeated parts are refused.
 async fn read_parts(req: Request, limit: usize) -> Result<Parts, ApiError> {
-    match media_type(req.headers()).as_deref() {
-        Some("multipart/form-data") => {}
-        other => {
-            let e = ApiError::UnsupportedMediaType(format!(
-                "send multipart/form-data with the parts image, mesh, params and optionally mask, not {}",
-                other.unwrap_or("a body without Content-Type")
-            ));
-            return Err(e);
-        }
-    }
     let mut mp = Multipart::from_request(req, &())
         .await
         .map_err(|e| ApiError::BadRequest(e.body_text()))?;
@@ -158,6 +148,7 @@ pub async fn pose(
     timeout?;
     // Admission to the pose lane before keeping anything, as for /detect.
     let permit = state.infer.admit_to(Lane::Pose)?;
+    media?;
     let parts = read_parts(req, cfg.max_pose_body_bytes).await?;
     let missing =
         |name: &str| ApiError::BadRequest(format!("the multipart body has no `{name}` part"));

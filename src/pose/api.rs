@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use super::geometry::{projected_box, Intrinsics, Pose};
 use super::irls::{refine_until, IrlsParams, PoseResult};
 use super::mesh::Mesh;
+use super::params::MAX_ITERATIONS;
 use super::start::start_poses;
 use super::{EdgeModel, PoseError};
 use crate::model::Model;
@@ -159,8 +160,6 @@ pub struct PoseResponse {
     pub mesh_faces_dropped: usize,
 }
 
-/// The most iterations a request may ask for (`max_iterations`).
-pub const MAX_ITERATIONS: usize = 1000;
 /// The largest `start_uncertainty.degrees` a request may give.
 pub const MAX_START_DEGREES: f64 = 1000.0;
 

@@ -100,11 +100,17 @@ impl Default for IrlsParams {
     }
 }
 
+/// The most iterations a refinement may be asked for.
+pub const MAX_ITERATIONS: usize = 1000;
+
 impl IrlsParams {
     /// Checks every setting; the error names the first one out of range.
     pub fn validate(&self) -> Result<(), PoseError> {
         let checks = [
-            ("max_iterations", (1..=1000).contains(&self.max_iterations)),
+            (
+                "max_iterations",
+                (1..=MAX_ITERATIONS).contains(&self.max_iterations),
+            ),
             ("inner_steps", self.inner_steps >= 1),
             (
                 "sample_step",

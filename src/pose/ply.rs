@@ -22,7 +22,8 @@ use crate::vision::Deadline;
 
 /// The longest header read.
 const MAX_HEADER_BYTES: usize = 64 << 10;
-/// Items read between two looks at the deadline.
+/// Numbers read between two looks at the deadline (every item of every
+/// element loop reads at least one, so no loop runs past it).
 const DEADLINE_STRIDE: usize = 1 << 14;
 /// The fewest indices of a face that is kept.
 const MIN_FACE_INDICES: usize = 3;
@@ -457,17 +458,11 @@ impl Body<'_> {
     }
 
     /// Steps over every item of `e`.
-    fn skip_element(&mut self, e: &Element, deadline: &Deadline) -> Result<(), PoseError> {
+    fn skip_element(&mut self, e: &Element) -> Result<(), PoseError> {
         if let (Format::Binary { .. }, Some(size)) = (self.format, e.fixed_size()) {
             return self.skip(Scalar::U8, e.count.saturating_mul(size));
         }
-        for i in 0..e.count {
-            if i % DEADLINE_STRIDE == 0 && deadline.passed() {
-                return Err(PoseError::DeadlineExceeded);
-            }
-            self.skip_item(e)?;
-        }
-        Ok(())
+        (0..e.count).try_for_each(|_| self.skip_item(e))
     }
 }
 
@@ -543,10 +538,7 @@ pub fn read(
                 vertices.reserve_exact(e.count);
                 let mut cols = Vec::with_capacity(if rgb_slots.is_some() { e.count } else { 0 });
                 let mut values = vec![0.0f64; e.props.len()];
-                for i in 0..e.count {
-                    if i % DEADLINE_STRIDE == 0 && deadline.passed() {
-                        return Err(PoseError::DeadlineExceeded);
-                    }
+                for _ in 0..e.count {
                     for (v, p) in values.iter_mut().zip(&e.props) {
                         match p.kind {
                             Kind::Scalar(s) => *v = body.read(s)?,
@@ -576,9 +568,6 @@ pub fn read(
                 triangles.reserve_exact(e.count);
                 let mut idx: Vec<u32> = Vec::new();
                 for fi in 0..e.count {
-                    if fi % DEADLINE_STRIDE == 0 && deadline.passed() {
-                        return Err(PoseError::DeadlineExceeded);
-                    }
                     for (pi, p) in e.props.iter().enumerate() {
                         match p.kind {
                             Kind::Scalar(s) => body.skip(s, 1)?,
@@ -626,7 +615,7 @@ pub fn read(
                     }
                 }
             }
-            _ => body.skip_element(e, deadline)?,
+            _ => body.skip_element(e)?,
         }
     }
     // What follows the declared elements (ASCII: past blanks) means the

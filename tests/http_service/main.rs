@@ -602,14 +602,7 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         .collect();
     let mut refused = false;
     for _ in 0..200 {
-        let text = c
-            .get(server.url("/metrics"))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let text = metrics_text(&server.base).await;
         if metric(&text, "sdhop_queue_size") >= 1.0 {
             let (s, _, body) = call(
                 &spec,

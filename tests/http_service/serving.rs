@@ -120,14 +120,7 @@ async fn a_request_whose_deadline_passes_in_the_queue_is_never_computed() {
     // worker drops it when it reaches it, after the busy request).
     let mut counts = (0.0, 0.0);
     for _ in 0..200 {
-        let text = c
-            .get(server.url("/metrics"))
-            .send()
-            .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
+        let text = metrics_text(&server.base).await;
         counts = (
             metric(&text, "sdhop_queue_requests_total{outcome=\"completed\"}"),
             metric(&text, "sdhop_queue_requests_total{outcome=\"cancelled\"}")
