@@ -20,6 +20,7 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::vision::cells::{FeatureKind, LearnedCells};
 use crate::vision::detect::{DetectParams, LowRank};
 use crate::vision::energy::{PairwiseMode, ViewWeights};
 use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
@@ -110,6 +111,12 @@ pub struct ModelMeta {
     #[serde(default)]
     pub pairwise: PairwiseMode,
     pub pyramid: PyramidParams,
+    /// For learned cells (`pyramid.features` = `cnn`): the fingerprint of
+    /// the cell projection the model was trained on
+    /// ([`crate::vision::cells::CellProjection::fingerprint`]); a build
+    /// with other cells refuses the model. Absent for HOG.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cells: Option<String>,
     pub segmentation: SegmentParams,
     /// Default detection settings (threshold, NMS, truncation, refinement).
     pub detection: DetectParams,
@@ -292,6 +299,23 @@ impl Model {
             }
         }
         m.pyramid.validate()?;
+        match (m.pyramid.features, &m.cells) {
+            (FeatureKind::Hog, None) => {}
+            (FeatureKind::Hog, Some(_)) => {
+                return Err(ModelError::Invalid(
+                    "a HOG model names a cell projection".into(),
+                ))
+            }
+            (FeatureKind::Cnn, cells) => {
+                let here = LearnedCells::builtin()?.projection.fingerprint();
+                if cells.as_deref() != Some(here.as_str()) {
+                    return Err(ModelError::Invalid(format!(
+                        "trained on learned cells {}, this build computes cells {here}: retrain the model with this build",
+                        cells.as_deref().unwrap_or("(none named)")
+                    )));
+                }
+            }
+        }
         m.segmentation.validate()?;
         m.detection.validate()?;
         Ok(())
@@ -497,6 +521,7 @@ mod tests {
             hop_k: 4,
             pairwise: PairwiseMode::Grid,
             pyramid: PyramidParams::default(),
+            cells: None,
             segmentation: SegmentParams::default(),
             detection: DetectParams::default(),
             viewpoints: vec![ViewMeta {
@@ -607,5 +632,36 @@ mod tests {
             Model::from_bytes(&text),
             Err(ModelError::Shape { .. })
         ));
+    }
+
+    #[test]
+    fn a_model_of_each_feature_kind_round_trips_and_cells_must_match() {
+        // HOG: the metadata names no feature kind (files as before).
+        let hog = sample();
+        let bytes = hog.to_bytes().unwrap();
+        let meta = serde_json::to_value(&hog.meta).unwrap();
+        assert!(meta["pyramid"].get("features").is_none() && meta.get("cells").is_none());
+        assert_eq!(Model::from_bytes(&bytes).unwrap(), hog);
+        // Learned cells: the kind and the projection's fingerprint travel.
+        let mut cnn = sample();
+        cnn.meta.pyramid.features = FeatureKind::Cnn;
+        cnn.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+        let back = Model::from_bytes(&cnn.to_bytes().unwrap()).unwrap();
+        assert_eq!(back, cnn);
+        assert_eq!(back.meta.pyramid.features, FeatureKind::Cnn);
+        // Trained on other cells, or naming none: refused, saying why.
+        let mut other = cnn.clone();
+        other.meta.cells = Some("0123456789abcdef".into());
+        let err = other.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("0123456789abcdef") && err.contains("retrain"),
+            "{err}"
+        );
+        let mut none = cnn;
+        none.meta.cells = None;
+        assert!(matches!(none.validate(), Err(ModelError::Invalid(_))));
+        let mut hog_named = hog;
+        hog_named.meta.cells = Some("0123456789abcdef".into());
+        assert!(matches!(hog_named.validate(), Err(ModelError::Invalid(_))));
     }
 }

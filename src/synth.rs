@@ -377,6 +377,7 @@ pub fn hand_model(
         hop_k: k,
         pairwise: PairwiseMode::Grid,
         pyramid: PyramidParams::default(),
+        cells: None,
         segmentation: SegmentParams::default(),
         detection,
         viewpoints: vec![ViewMeta {

@@ -17,6 +17,7 @@ use sdhop::pipeline::{
     detect_image, detect_prebuilt_with, feature_settings, DetectOptions, MaskMode,
 };
 use sdhop::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::{dense_bounds, responses, DenseBounds, Location};
 use sdhop::vision::hog::HogMap;
 use sdhop::vision::image::ColorImage;
@@ -198,9 +199,17 @@ fn hog_features_match_the_cpu() {
 
 fn models() -> Vec<Model> {
     let hp = HandModelParams::default();
+    // A model of learned cells beside the HOG ones: its pyramid is built
+    // apart (the backbone on the CPU) and served through the same bounds,
+    // responses and min-cuts.
+    let mut learned = hand_model(&OBJECT, "learned", true, &hp).unwrap();
+    learned.meta.pyramid.features = FeatureKind::Cnn;
+    learned.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    learned.validate().unwrap();
     let mut out = vec![
         hand_model(&OBJECT, "occlusion", true, &hp).unwrap(),
         hand_model(&OBJECT, "plain", false, &hp).unwrap(),
+        learned,
     ];
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
     for name in ["cup", "scissors"] {

@@ -26,6 +26,11 @@ pub(crate) struct TrainSettings {
     /// Template size in cells, ROWSxCOLS (overrides --template-scale).
     #[arg(long, value_parser = parse_template)]
     pub(crate) template: Option<[usize; 2]>,
+    /// What a cell's vector is: `hog` (Felzenszwalb's HOG) or `cnn` (the
+    /// pretrained EfficientNet-Lite0 backbone's cells, built in; see
+    /// docs/training.md).
+    #[arg(long, value_parser = crate::vision::cells::FeatureKind::parse)]
+    pub(crate) features: Option<crate::vision::cells::FeatureKind>,
     /// Pyramid levels per octave.
     #[arg(long)]
     pub(crate) levels_per_octave: Option<u32>,
@@ -115,6 +120,9 @@ impl TrainSettings {
         }
         if self.template.is_some() {
             p.template = self.template;
+        }
+        if let Some(v) = self.features {
+            p.pyramid.features = v;
         }
         if let Some(v) = self.levels_per_octave {
             p.pyramid.levels_per_octave = v;

@@ -102,6 +102,9 @@ struct PoseOutcome {
 struct Variant {
     name: String,
     models_dir: String,
+    /// The models' cell features (`hog`, `cnn`).
+    #[serde(default)]
+    features: String,
     objects: Vec<DetectScore>,
     mean_auc: f64,
     mean_seg_error: f64,
@@ -287,6 +290,7 @@ fn evaluate(
     let mut v = Variant {
         name: name.to_string(),
         models_dir: dir.display().to_string(),
+        features: feature_kinds(&models),
         mean_auc: 0.0,
         mean_seg_error: 0.0,
         mean_seg_error_raw: 0.0,
@@ -301,8 +305,8 @@ fn evaluate(
 
 fn print_variant(v: &Variant) {
     println!(
-        "{} ({}), detection {:.0} ms per image",
-        v.name, v.models_dir, v.detect_ms_per_image
+        "{} ({}, {} features), detection {:.0} ms per image",
+        v.name, v.models_dir, v.features, v.detect_ms_per_image
     );
     println!(
         "{:<12} {:>6} {:>8} {:>5} {:>7} {:>7} {:>5}",

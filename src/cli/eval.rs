@@ -84,10 +84,17 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     let evaluation = score(&data, &images, &responses);
     let report = serde_json::json!({
         "models": models.iter().map(|m| &m.meta.name).collect::<Vec<_>>(),
+        "features": feature_kinds(&models),
         "part": args.part.name(),
         "images": images.len(),
         "evaluation": strip_curves(&evaluation),
     });
+    println!(
+        "{} model(s), {} features, {} photographs",
+        models.len(),
+        feature_kinds(&models),
+        images.len()
+    );
     let ids: Vec<&str> = images.iter().map(|s| s.id.as_str()).collect();
     write_evaluation(
         &args.out,

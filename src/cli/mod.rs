@@ -7,6 +7,7 @@
 mod annotate;
 mod args;
 mod bop_eval;
+mod cells;
 mod cv;
 mod demo;
 mod detect;
@@ -45,6 +46,7 @@ use crate::vision::refine::PixelRefine;
 use annotate::*;
 use args::*;
 use bop_eval::*;
+use cells::*;
 use cv::*;
 use demo::*;
 use detect::*;
@@ -110,6 +112,20 @@ pub(crate) enum Command {
     /// Generate a synthetic occluded scene and a hand-built model of its object,
     /// detect, and report box and mask accuracy against the exact truth.
     Demo(DemoArgs),
+    /// Fit the fixed projection of the learned (convolutional) cells to
+    /// the backbone's features of representative photographs (written to
+    /// models/backbones/, built into the binary at the next build).
+    Cells(CellsArgs),
+}
+
+/// The feature kinds of `models` (`hog`, `cnn` or both, comma-separated),
+/// as every evaluation report names them.
+pub(crate) fn feature_kinds<'a>(models: impl IntoIterator<Item = &'a Model>) -> String {
+    let kinds: std::collections::BTreeSet<&str> = models
+        .into_iter()
+        .map(|m| m.meta.pyramid.features.name())
+        .collect();
+    kinds.into_iter().collect::<Vec<_>>().join(",")
 }
 
 /// An error with the process exit code it maps to.
@@ -201,6 +217,7 @@ pub fn main() -> ExitCode {
         Command::PoseBench(a) => run_pose_bench(a),
         Command::PoseEval(a) => run_pose_eval(a),
         Command::Demo(a) => run_demo(a),
+        Command::Cells(a) => run_cells(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

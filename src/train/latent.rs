@@ -243,6 +243,7 @@ mod tests {
                 levels_per_octave: 2,
                 min_scale: 0.7,
                 max_scale: 1.0,
+                ..Default::default()
             },
             max_passes: 3,
             ..TrainParams::default()

@@ -576,6 +576,7 @@ pub fn train_joint(
         hop_k: params.k,
         pairwise: params.pair_mode,
         pyramid: params.pyramid,
+        cells: params.pyramid.features.fingerprint()?,
         segmentation: params.segmentation,
         detection: DetectParams {
             threshold: params.threshold,

@@ -153,32 +153,13 @@ fn relu6(v: f32) -> f32 {
 }
 
 /// `c = a (m x k) * b (k x n)`, all row-major, `c` overwritten.
+#[cfg(test)]
 fn gemm(m: usize, k: usize, n: usize, a: &[f32], b: &[f32], c: &mut [f32]) {
-    debug_assert!(a.len() >= m * k && b.len() >= k * n && c.len() >= m * n);
-    // SAFETY: the slices hold the m x k, k x n and m x n matrices with the
-    // row strides given (checked by the callers' shapes), and `c` does not
-    // alias `a` or `b` (distinct borrows).
-    unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.as_ptr(),
-            k as isize,
-            1,
-            b.as_ptr(),
-            n as isize,
-            1,
-            0.0,
-            c.as_mut_ptr(),
-            n as isize,
-            1,
-        );
-    }
+    gemm_strided(m, k, n, a, b, n, c, n);
 }
 
 impl Pointwise {
+    #[cfg(test)]
     fn apply(&self, x: &FeatureMap, activate: bool) -> FeatureMap {
         let n = x.width * x.height;
         let mut out = FeatureMap::zeros(self.out, x.width, x.height);
@@ -196,26 +177,55 @@ impl Pointwise {
 }
 
 impl Depthwise {
+    /// The whole map at once (the reference the banded path is tested
+    /// against).
+    #[cfg(test)]
+    fn apply(&self, x: &FeatureMap) -> FeatureMap {
+        let (ow, _) = same_padding(x.width, self.k, self.stride);
+        let (oh, _) = same_padding(x.height, self.k, self.stride);
+        let mut out = FeatureMap::zeros(self.channels, ow, oh);
+        let src = Rows {
+            data: &x.data,
+            plane: x.width * x.height,
+            width: x.width,
+            y0: 0,
+            rows: x.height,
+            height: x.height,
+        };
+        let mut phases = Vec::new();
+        self.apply_rows(&src, 0, oh, &mut out.data, &mut phases);
+        out
+    }
+
+    /// Output rows `oy0..oy1` (all channels, `channels x (oy1 - oy0) x
+    /// ow` into `dst`) from the input rows `src` holds, which must cover
+    /// every row they read.
+    ///
     /// Tap by tap over whole output rows: for each kernel weight, the
     /// output columns whose input column lies inside the image get
     /// `weight * input` added (a contiguous, vectorised loop at stride 1),
     /// so that no sample tests the border.
-    fn apply(&self, x: &FeatureMap) -> FeatureMap {
+    fn apply_rows(
+        &self,
+        x: &Rows<'_>,
+        oy0: usize,
+        oy1: usize,
+        dst_all: &mut [f32],
+        phases: &mut Vec<f32>,
+    ) {
         let (k, s) = (self.k, self.stride);
         let (ow, left) = same_padding(x.width, k, s);
-        let (oh, top) = same_padding(x.height, k, s);
-        let mut out = FeatureMap::zeros(self.channels, ow, oh);
-        let plane = x.width * x.height;
+        let (_, top) = same_padding(x.height, k, s);
+        let band = (oy1 - oy0) * ow;
         // At stride 2 each row is split into its even and odd samples, so
         // that every tap reads a contiguous run of one of them.
         let half = x.width.div_ceil(2);
-        let mut phases = if s == 2 {
-            vec![0.0f32; 2 * half * x.height]
-        } else {
-            Vec::new()
-        };
+        if s == 2 {
+            phases.clear();
+            phases.resize(2 * half * x.rows, 0.0);
+        }
         for c in 0..self.channels {
-            let src = &x.data[c * plane..(c + 1) * plane];
+            let src = &x.data[c * x.plane..c * x.plane + x.rows * x.width];
             if s == 2 {
                 for (row, split) in src
                     .chunks_exact(x.width)
@@ -232,11 +242,16 @@ impl Depthwise {
                 }
             }
             let kernel = &self.weight[c * k * k..(c + 1) * k * k];
-            let dst = &mut out.data[c * ow * oh..(c + 1) * ow * oh];
+            let dst = &mut dst_all[c * band..(c + 1) * band];
             dst.fill(self.bias[c]);
             for dy in 0..k {
-                for oy in 0..oh {
+                for oy in oy0..oy1 {
                     let Some(y) = (oy * s + dy).checked_sub(top).filter(|&y| y < x.height) else {
+                        continue;
+                    };
+                    // The row within the band held.
+                    let Some(y) = y.checked_sub(x.y0).filter(|&y| y < x.rows) else {
+                        debug_assert!(false, "row {y} outside the band held");
                         continue;
                     };
                     let row = &src[y * x.width..(y + 1) * x.width];
@@ -245,7 +260,7 @@ impl Depthwise {
                     } else {
                         &[][..]
                     };
-                    let out_row = &mut dst[oy * ow..(oy + 1) * ow];
+                    let out_row = &mut dst[(oy - oy0) * ow..(oy - oy0 + 1) * ow];
                     for dx in 0..k {
                         let wv = kernel[dy * k + dx];
                         // Output columns whose input column
@@ -281,8 +296,167 @@ impl Depthwise {
                 *v = relu6(*v);
             }
         }
+    }
+}
+
+/// Rows `y0..y0 + rows` of a channels-first map of `height` rows: channel
+/// `c`'s row `y0 + r` at `data[c * plane + r * width..]`.
+struct Rows<'a> {
+    data: &'a [f32],
+    plane: usize,
+    width: usize,
+    y0: usize,
+    rows: usize,
+    height: usize,
+}
+
+/// Output rows of a block computed at a time: the expanded map is held
+/// for one band only (a few hundred kilobytes rather than, at the
+/// largest pyramid levels, a few hundred megabytes allocated and faulted
+/// in per layer).
+const BAND_ROWS: usize = 8;
+
+/// Buffers of the banded forward, reused from band to band.
+#[derive(Default)]
+struct Scratch {
+    expanded: Vec<f32>,
+    depthwise: Vec<f32>,
+    phases: Vec<f32>,
+}
+
+impl Block {
+    /// The block over the whole map, [`BAND_ROWS`] output rows at a time:
+    /// the expansion of just the input rows a band reads, its depthwise
+    /// convolution and its projection.
+    fn apply(&self, x: &FeatureMap, scratch: &mut Scratch) -> FeatureMap {
+        let dw = &self.depthwise;
+        let (k, s) = (dw.k, dw.stride);
+        let (ow, _) = same_padding(x.width, k, s);
+        let (oh, top) = same_padding(x.height, k, s);
+        let plane_out = ow * oh;
+        let mut out = FeatureMap::zeros(self.project.out, ow, oh);
+        let mid = dw.channels;
+        for oy0 in (0..oh).step_by(BAND_ROWS) {
+            let oy1 = (oy0 + BAND_ROWS).min(oh);
+            // The input rows the band reads.
+            let y0 = (oy0 * s).saturating_sub(top);
+            let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
+            let rows = y1 - y0;
+            let src = match &self.expand {
+                Some(e) => {
+                    let n = rows * x.width;
+                    scratch.expanded.resize(mid * n, 0.0);
+                    // expanded (mid x n) = weight (mid x inp) * x's rows
+                    // (inp x n, channel stride plane).
+                    gemm_strided(
+                        mid,
+                        e.inp,
+                        n,
+                        &e.weight,
+                        &x.data[y0 * x.width..],
+                        x.width * x.height,
+                        &mut scratch.expanded,
+                        n,
+                    );
+                    for (plane, &b) in scratch.expanded.chunks_exact_mut(n).zip(&e.bias) {
+                        for v in plane {
+                            *v = relu6(*v + b);
+                        }
+                    }
+                    Rows {
+                        data: &scratch.expanded,
+                        plane: n,
+                        width: x.width,
+                        y0,
+                        rows,
+                        height: x.height,
+                    }
+                }
+                None => Rows {
+                    data: &x.data[y0 * x.width..],
+                    plane: x.width * x.height,
+                    width: x.width,
+                    y0,
+                    rows,
+                    height: x.height,
+                },
+            };
+            let band = (oy1 - oy0) * ow;
+            scratch.depthwise.resize(mid * band, 0.0);
+            dw.apply_rows(&src, oy0, oy1, &mut scratch.depthwise, &mut scratch.phases);
+            // The band's rows of the output (channel stride plane_out).
+            let p = &self.project;
+            gemm_into(
+                p.out,
+                p.inp,
+                band,
+                &p.weight,
+                &scratch.depthwise,
+                &mut out.data[oy0 * ow..],
+                plane_out,
+            );
+            for c in 0..p.out {
+                let o = &mut out.data[c * plane_out + oy0 * ow..][..band];
+                if self.skip {
+                    let i = &x.data[c * plane_out + oy0 * ow..][..band];
+                    for (o, &i) in o.iter_mut().zip(i) {
+                        *o += p.bias[c] + i;
+                    }
+                } else {
+                    for o in o.iter_mut() {
+                        *o += p.bias[c];
+                    }
+                }
+            }
+        }
         out
     }
+}
+
+/// `c = a (m x k, row-major) * b`, where `b`'s row `r` starts at `b[r *
+/// b_stride]` and has `n` values; `c` (`m x n`, row stride `c_stride`)
+/// overwritten.
+#[allow(clippy::too_many_arguments)]
+fn gemm_strided(
+    m: usize,
+    k: usize,
+    n: usize,
+    a: &[f32],
+    b: &[f32],
+    b_stride: usize,
+    c: &mut [f32],
+    c_stride: usize,
+) {
+    assert!(a.len() >= m * k);
+    assert!(k == 0 || b.len() >= (k - 1) * b_stride + n);
+    assert!(m == 0 || c.len() >= (m - 1) * c_stride + n);
+    // SAFETY: the asserts above bound every element read or written:
+    // a[i * k + l], b[l * b_stride + j], c[i * c_stride + j] for i < m,
+    // l < k, j < n; `c` does not alias `a` or `b` (distinct borrows).
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.as_ptr(),
+            k as isize,
+            1,
+            b.as_ptr(),
+            b_stride as isize,
+            1,
+            0.0,
+            c.as_mut_ptr(),
+            c_stride as isize,
+            1,
+        );
+    }
+}
+
+/// [`gemm_strided`] with `b` contiguous (`k x n`) and `c`'s rows `c_stride`
+/// apart.
+fn gemm_into(m: usize, k: usize, n: usize, a: &[f32], b: &[f32], c: &mut [f32], c_stride: usize) {
+    gemm_strided(m, k, n, a, b, n, c, c_stride);
 }
 
 impl Backbone {
@@ -414,8 +588,83 @@ impl Backbone {
     }
 
     /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
-    /// 27 rows) times the stem's weights, then ReLU6.
-    fn stem(&self, img: &ColorImage) -> FeatureMap {
+    /// 27 rows, [`BAND_ROWS`] output rows at a time) times the stem's
+    /// weights, then ReLU6.
+    fn stem(&self, img: &ColorImage, scratch: &mut Scratch) -> FeatureMap {
+        let (w, h) = (img.width(), img.height());
+        let (ow, left) = same_padding(w, 3, 2);
+        let (oh, top) = same_padding(h, 3, 2);
+        let plane = ow * oh;
+        let out_c = self.stem_bias.len();
+        let mut out = FeatureMap::zeros(out_c, ow, oh);
+        let pixels = img.data();
+        for oy0 in (0..oh).step_by(BAND_ROWS) {
+            let oy1 = (oy0 + BAND_ROWS).min(oh);
+            let n = (oy1 - oy0) * ow;
+            let patches = &mut scratch.expanded;
+            patches.clear();
+            patches.resize(27 * n, 0.0);
+            for c in 0..3 {
+                let (mean, std) = (self.mean[c], self.std[c]);
+                for dy in 0..3 {
+                    for dx in 0..3 {
+                        let row = &mut patches[((c * 3 + dy) * 3 + dx) * n..][..n];
+                        // Output columns whose input column 2 ox + dx - left
+                        // lies in 0..w.
+                        let lo = left.saturating_sub(dx).div_ceil(2);
+                        let hi = ((w + left - dx - 1) / 2 + 1).min(ow);
+                        if lo >= hi {
+                            continue;
+                        }
+                        let first = lo * 2 + dx - left;
+                        for oy in oy0..oy1 {
+                            let Some(y) = (oy * 2 + dy).checked_sub(top).filter(|&y| y < h) else {
+                                continue;
+                            };
+                            let src = &pixels[(y * w + first) * 3 + c..];
+                            let dst = &mut row[(oy - oy0) * ow..][lo..hi];
+                            for (o, v) in dst.iter_mut().zip(src.iter().step_by(6)) {
+                                *o = (v - mean) / std;
+                            }
+                        }
+                    }
+                }
+            }
+            gemm_into(
+                out_c,
+                27,
+                n,
+                &self.stem,
+                patches,
+                &mut out.data[oy0 * ow..],
+                plane,
+            );
+            for (c, &b) in self.stem_bias.iter().enumerate() {
+                for v in &mut out.data[c * plane + oy0 * ow..][..n] {
+                    *v = relu6(*v + b);
+                }
+            }
+        }
+        out
+    }
+
+    /// The features of `img` (RGB, 0-255): `channels` planes of
+    /// `ceil(width / stride) x ceil(height / stride)` cells. Each block
+    /// runs band by band ([`BAND_ROWS`]), so that no expanded map is held
+    /// whole.
+    pub fn forward(&self, img: &ColorImage) -> FeatureMap {
+        let mut scratch = Scratch::default();
+        let mut x = self.stem(img, &mut scratch);
+        for b in &self.blocks {
+            x = b.apply(&x, &mut scratch);
+        }
+        x
+    }
+
+    /// The same features, each layer over the whole map at once (the
+    /// plain reference of the banded [`Self::forward`]).
+    #[cfg(test)]
+    fn forward_whole(&self, img: &ColorImage) -> FeatureMap {
         let (w, h) = (img.width(), img.height());
         let (ow, left) = same_padding(w, 3, 2);
         let (oh, top) = same_padding(h, 3, 2);
@@ -439,20 +688,13 @@ impl Backbone {
             }
         }
         let out_c = self.stem_bias.len();
-        let mut out = FeatureMap::zeros(out_c, ow, oh);
-        gemm(out_c, 27, n, &self.stem, &patches, &mut out.data);
-        for (plane, &b) in out.data.chunks_exact_mut(n).zip(&self.stem_bias) {
+        let mut x = FeatureMap::zeros(out_c, ow, oh);
+        gemm(out_c, 27, n, &self.stem, &patches, &mut x.data);
+        for (plane, &b) in x.data.chunks_exact_mut(n).zip(&self.stem_bias) {
             for v in plane {
                 *v = relu6(*v + b);
             }
         }
-        out
-    }
-
-    /// The features of `img` (RGB, 0-255): `channels` planes of
-    /// `ceil(width / stride) x ceil(height / stride)` cells.
-    pub fn forward(&self, img: &ColorImage) -> FeatureMap {
-        let mut x = self.stem(img);
         for b in &self.blocks {
             let input = b.skip.then(|| x.clone());
             if let Some(e) = &b.expand {
@@ -546,6 +788,31 @@ mod tests {
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
         // float32 against the script's float64, through 16 layers.
         assert!(worst <= 1e-4 * scale, "worst {worst} of {scale}");
+    }
+
+    #[test]
+    fn the_banded_forward_is_the_whole_maps_forward() {
+        let net = Backbone::from_bytes(&shipped()).unwrap();
+        let mut rng = crate::vision::rng::SplitMix64::new(5);
+        // Sizes around the bands and strides: odd, even, a single band,
+        // several with a short last one.
+        for (w, h) in [(9, 7), (64, 48), (131, 77), (200, 150), (33, 260)] {
+            let data = (0..w * h * 3)
+                .map(|_| (rng.next_f64() * 255.0) as f32)
+                .collect();
+            let img = ColorImage::new(w, h, data).unwrap();
+            let (a, b) = (net.forward(&img), net.forward_whole(&img));
+            assert_eq!(
+                (a.channels, a.width, a.height),
+                (b.channels, b.width, b.height)
+            );
+            let worst = a
+                .data
+                .iter()
+                .zip(&b.data)
+                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            assert!(worst <= 1e-4, "{w}x{h}: worst {worst}");
+        }
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! SD-HOP energy and detection. Pure functions on plain data; this layer
 //! imports no async runtime, web framework or GPU API.
 
+pub mod cells;
 pub mod cnn;
 pub mod deadline;
 pub mod detect;

@@ -6,7 +6,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::hog::{hog, HogMap, CELL_SIZE};
+use super::cells::FeatureKind;
+use super::hog::{HogMap, CELL_SIZE};
 use super::image::ColorImage;
 use super::segment::{segment, SegmentParams, Segmentation};
 use super::{Deadline, VisionError};
@@ -18,15 +19,20 @@ pub struct PyramidParams {
     pub levels_per_octave: u32,
     pub max_scale: f32,
     pub min_scale: f32,
+    /// What a cell's vector is (absent from the files of HOG models, which
+    /// all models were before learned cells).
+    #[serde(default, skip_serializing_if = "FeatureKind::is_hog")]
+    pub features: FeatureKind,
 }
 
 impl Default for PyramidParams {
-    /// 11 levels from full size down to half size.
+    /// 11 levels from full size down to half size, HOG cells.
     fn default() -> Self {
         Self {
             levels_per_octave: 10,
             max_scale: 1.0,
             min_scale: 0.5,
+            features: FeatureKind::Hog,
         }
     }
 }
@@ -163,27 +169,7 @@ impl FeaturePyramid {
             },
             || {
                 let t = Instant::now();
-                let levels: Result<Vec<_>, VisionError> = params
-                    .scales()
-                    .into_par_iter()
-                    .filter_map(|s| {
-                        let lw = (w as f64 * s).round() as usize;
-                        let lh = (h as f64 * s).round() as usize;
-                        (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
-                    })
-                    .map(|(lw, lh)| {
-                        if deadline.passed() {
-                            return Err(VisionError::DeadlineExceeded);
-                        }
-                        // The full-size level reads the image itself.
-                        if (lw, lh) == (w, h) {
-                            return Ok((lw, lh, hog(img)));
-                        }
-                        let resized = img.resize_area(lw, lh)?;
-                        Ok((lw, lh, hog(&resized)))
-                    })
-                    .collect();
-                levels.map(|l| (l, ms(t)))
+                feature_levels(img, params, deadline).map(|l| (l, ms(t)))
             },
         );
         let (segmentation, segmentation_ms) = segmentation?;
@@ -221,6 +207,46 @@ impl FeaturePyramid {
             seg_params: *seg,
         })
     }
+}
+
+/// The size of every level of `params` on a `w x h` image, largest first:
+/// the levels at least one cell on each side.
+pub fn level_sizes(w: usize, h: usize, params: &PyramidParams) -> Vec<(usize, usize)> {
+    params
+        .scales()
+        .into_iter()
+        .filter_map(|s| {
+            let lw = (w as f64 * s).round() as usize;
+            let lh = (h as f64 * s).round() as usize;
+            (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
+        })
+        .collect()
+}
+
+/// The cells of every level ([`level_sizes`]) of `img`, of the kind
+/// `params` names, levels in parallel; gives up with
+/// [`VisionError::DeadlineExceeded`] once `deadline` has passed (looked at
+/// before each level).
+pub fn feature_levels(
+    img: &ColorImage,
+    params: &PyramidParams,
+    deadline: Deadline,
+) -> Result<Vec<(usize, usize, HogMap)>, VisionError> {
+    let (w, h) = (img.width(), img.height());
+    level_sizes(w, h, params)
+        .into_par_iter()
+        .map(|(lw, lh)| {
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
+            // The full-size level reads the image itself.
+            if (lw, lh) == (w, h) {
+                return Ok((lw, lh, params.features.cells(img)?));
+            }
+            let resized = img.resize_area(lw, lh)?;
+            Ok((lw, lh, params.features.cells(&resized)?))
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -270,6 +296,7 @@ mod tests {
                 levels_per_octave: 64,
                 min_scale: 0.01,
                 max_scale: 4.0,
+                ..Default::default()
             },
         ];
         for p in bad {

@@ -46,18 +46,7 @@ impl LevelDesc {
     }
 }
 
-/// The levels a pyramid has: `(width, height)` of each, as
-/// [`FeaturePyramid::build`] chooses them.
-pub(super) fn level_sizes(w: usize, h: usize, p: &PyramidParams) -> Vec<(usize, usize)> {
-    p.scales()
-        .into_iter()
-        .filter_map(|s| {
-            let lw = (w as f64 * s).round() as usize;
-            let lh = (h as f64 * s).round() as usize;
-            (lw >= CELL_SIZE && lh >= CELL_SIZE).then_some((lw, lh))
-        })
-        .collect()
-}
+pub(super) use crate::vision::pyramid::level_sizes;
 
 pub(super) fn push_taps(taps: &mut Vec<u32>, table: &[Vec<(usize, f32)>]) -> Result<u32, GpuError> {
     let off = to_u32(taps.len(), "taps")?;

@@ -30,9 +30,9 @@ use crate::vision::detect::{chain_pair_weight, scan_range, DenseBounds, LevelBou
 use crate::vision::energy::ViewWeights;
 use crate::vision::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
 use crate::vision::image::{area_weights, ColorImage};
-use crate::vision::pyramid::{FeaturePyramid, Level, PyramidParams, PyramidTiming};
+use crate::vision::pyramid::{feature_levels, FeaturePyramid, Level, PyramidParams, PyramidTiming};
 use crate::vision::segment::{segment, SegmentParams, Segmentation};
-use crate::vision::VisionError;
+use crate::vision::{Deadline, VisionError};
 use features::level_sizes;
 
 const RESIZE_WGSL: &str = include_str!("../../../kernels/resize_area.wgsl");
@@ -660,35 +660,62 @@ impl Backend for GpuBackend {
                 })
             })
             .collect();
+        // HOG cells on the device; learned cells (whose backbone has no
+        // kernels here yet) on the CPU, beside the segmentations.
         let mut work: Vec<(&ColorImage, PyramidParams)> = Vec::new();
+        let mut learned: Vec<(&ColorImage, PyramidParams, Deadline)> = Vec::new();
         let mut segs: Vec<(&ColorImage, SegmentParams)> = Vec::new();
         for (j, ok) in batch.iter().zip(&checked) {
             if ok.is_ok() {
                 for (p, s) in j.settings {
-                    work.push((j.image, *p));
+                    if p.features.is_hog() {
+                        work.push((j.image, *p));
+                    } else {
+                        learned.push((j.image, *p, j.deadline));
+                    }
                     segs.push((j.image, *s));
                 }
             }
         }
-        let (features, segmentations) = rayon::join(
+        let (features, (segmentations, learned)) = rayon::join(
             || {
                 let t = Instant::now();
+                if work.is_empty() {
+                    return Some((Vec::new(), 0.0));
+                }
                 self.with_ctx(|c| c.features(&work, false))
-                    .map(|f| (f, t.elapsed().as_secs_f64() * 1e3))
+                    .map(|f| (f.hogs, t.elapsed().as_secs_f64() * 1e3))
             },
             || {
-                segs.par_iter()
-                    .map(|(img, s)| {
-                        let t = Instant::now();
-                        segment(img, s).map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
-                    })
-                    .collect::<Vec<_>>()
+                rayon::join(
+                    || {
+                        segs.par_iter()
+                            .map(|(img, s)| {
+                                let t = Instant::now();
+                                segment(img, s).map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
+                            })
+                            .collect::<Vec<_>>()
+                    },
+                    || {
+                        learned
+                            .par_iter()
+                            .map(|(img, p, deadline)| {
+                                let t = Instant::now();
+                                feature_levels(img, p, *deadline).map(|l| {
+                                    let maps = l.into_iter().map(|(_, _, m)| m).collect::<Vec<_>>();
+                                    (maps, t.elapsed().as_secs_f64() * 1e3)
+                                })
+                            })
+                            .collect::<Vec<_>>()
+                    },
+                )
             },
         );
-        let Some((features, gpu_ms)) = features else {
+        let Some((hogs, gpu_ms)) = features else {
             return self.cpu.pyramids(batch);
         };
-        let mut hogs = features.hogs.into_iter();
+        let mut hogs = hogs.into_iter();
+        let mut learned = learned.into_iter();
         let mut segmentations = segmentations.into_iter();
         let mut out = Vec::with_capacity(batch.len());
         for (j, ok) in batch.iter().zip(checked) {
@@ -699,11 +726,22 @@ impl Backend for GpuBackend {
             let mut pyrs = Vec::with_capacity(j.settings.len());
             let mut failed = None;
             for (p, s) in j.settings {
-                let hog = hogs.next().unwrap_or_default();
+                let (hog, features_ms) = if p.features.is_hog() {
+                    (hogs.next().unwrap_or_default(), gpu_ms)
+                } else {
+                    match learned.next() {
+                        Some(Ok(l)) => l,
+                        Some(Err(e)) => {
+                            failed = Some(BackendError::from(e));
+                            (Vec::new(), 0.0)
+                        }
+                        None => (Vec::new(), 0.0),
+                    }
+                };
                 match segmentations.next() {
                     Some(Ok((seg, seg_ms))) => {
                         let timing = PyramidTiming {
-                            features_ms: gpu_ms,
+                            features_ms,
                             segmentation_ms: seg_ms,
                             cell_segments_ms: 0.0,
                             total_ms: 0.0,

@@ -1,0 +1,484 @@
+//! What a cell's vector is: the feature kind a model was trained on, and
+//! the learned (convolutional) cells.
+//!
+//! A cell is 8x8 pixels of a pyramid level and carries [`HOG_DIM`] numbers
+//! whatever its kind, so that the templates, the visibility model, the
+//! bounds and the GPU responses serve both kinds unchanged:
+//! - `hog`: Felzenszwalb's 31 HOG features ([`super::hog`]);
+//! - `cnn`: the pretrained backbone's 40 channels at stride 8
+//!   ([`super::cnn`]; its output cell `i` is centred on input pixel
+//!   `8i + 3.5`, as HOG's cell `i` covers `[8i, 8i + 8)`), standardised and
+//!   projected onto their 31 principal directions by a fixed
+//!   [`CellProjection`], scaled so that a cell's mean squared norm is
+//!   HOG's on the same photographs (the regularisation constant and the
+//!   thresholds keep their meaning).
+//!
+//! The backbone and the projection are built into the binary from
+//! `models/backbones/` (nothing is read or downloaded at run time); a
+//! model of kind `cnn` records the projection's fingerprint, and a model
+//! trained on another projection is refused at load.
+
+use std::sync::OnceLock;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use super::cnn::{Backbone, FeatureMap};
+use super::hog::{hog, HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use super::image::ColorImage;
+use super::VisionError;
+
+/// The backbone file, as `scripts/convert_efficientnet_lite0.py` wrote it.
+pub const BACKBONE_FILE: &[u8] =
+    include_bytes!("../../models/backbones/efficientnet_lite0_s8.safetensors");
+/// The cells' projection, as `sdhop-train cells` fitted it.
+pub const PROJECTION_FILE: &[u8] =
+    include_bytes!("../../models/backbones/efficientnet_lite0_s8_cells.safetensors");
+
+/// What a cell's vector is.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FeatureKind {
+    /// HOG (every model before learned cells).
+    #[default]
+    Hog,
+    /// The pretrained convolutional backbone's cells, projected.
+    Cnn,
+}
+
+impl FeatureKind {
+    pub fn is_hog(&self) -> bool {
+        *self == FeatureKind::Hog
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            FeatureKind::Hog => "hog",
+            FeatureKind::Cnn => "cnn",
+        }
+    }
+
+    /// Parses `hog` or `cnn`.
+    pub fn parse(s: &str) -> Result<Self, String> {
+        match s {
+            "hog" => Ok(FeatureKind::Hog),
+            "cnn" => Ok(FeatureKind::Cnn),
+            _ => Err(format!("unknown feature kind {s:?} (hog or cnn)")),
+        }
+    }
+
+    /// The fingerprint of this build's cells of this kind, which a model
+    /// trained on them records (`None` for HOG).
+    pub fn fingerprint(&self) -> Result<Option<String>, VisionError> {
+        match self {
+            FeatureKind::Hog => Ok(None),
+            FeatureKind::Cnn => Ok(Some(LearnedCells::builtin()?.projection.fingerprint())),
+        }
+    }
+
+    /// The cells of `img`: `floor(w / 8) x floor(h / 8)` of them.
+    pub fn cells(&self, img: &ColorImage) -> Result<HogMap, VisionError> {
+        match self {
+            FeatureKind::Hog => Ok(hog(img)),
+            FeatureKind::Cnn => LearnedCells::builtin()?.cells(img),
+        }
+    }
+}
+
+impl std::fmt::Display for FeatureKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A fixed linear map from the backbone's channels to a cell's
+/// [`HOG_DIM`] numbers: `cell = basis * (features - mean)`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CellProjection {
+    /// The backbone's channels.
+    pub channels: usize,
+    /// Mean of every channel over the fitting photographs.
+    pub mean: Vec<f32>,
+    /// `HOG_DIM x channels`, row-major (standardisation, principal
+    /// directions and the overall scale folded in).
+    pub basis: Vec<f32>,
+    /// Share of the standardised channels' variance the kept directions
+    /// carry.
+    pub variance_kept: f64,
+}
+
+fn bad(msg: impl Into<String>) -> VisionError {
+    VisionError::InvalidParameter(msg.into())
+}
+
+impl CellProjection {
+    /// Fits the projection to backbone maps of representative photographs
+    /// (every cell of every map counts once): channels standardised, the
+    /// [`HOG_DIM`] leading principal directions of their covariance kept,
+    /// and the whole scaled so that a cell's mean squared norm is
+    /// `target_sq_norm`.
+    pub fn fit(maps: &[FeatureMap], target_sq_norm: f64) -> Result<Self, VisionError> {
+        let c = maps.first().map(|m| m.channels).unwrap_or(0);
+        if c < HOG_DIM || maps.iter().any(|m| m.channels != c) {
+            return Err(bad(format!(
+                "cell projection: needs maps of one channel count >= {HOG_DIM}"
+            )));
+        }
+        let mut sum = vec![0.0f64; c];
+        let mut cross = vec![0.0f64; c * c];
+        let mut n = 0usize;
+        let mut v = vec![0.0f64; c];
+        for m in maps {
+            let plane = m.width * m.height;
+            for i in 0..plane {
+                for (ch, x) in v.iter_mut().enumerate() {
+                    *x = f64::from(m.data[ch * plane + i]);
+                }
+                for a in 0..c {
+                    sum[a] += v[a];
+                    for b in a..c {
+                        cross[a * c + b] += v[a] * v[b];
+                    }
+                }
+                n += 1;
+            }
+        }
+        if n < 2 * c {
+            return Err(bad("cell projection: too few cells to fit"));
+        }
+        let nf = n as f64;
+        let mean: Vec<f64> = sum.iter().map(|s| s / nf).collect();
+        let mut cov = nalgebra::DMatrix::<f64>::zeros(c, c);
+        for a in 0..c {
+            for b in a..c {
+                let v = cross[a * c + b] / nf - mean[a] * mean[b];
+                cov[(a, b)] = v;
+                cov[(b, a)] = v;
+            }
+        }
+        // Standardise: a channel that never varies (a dead ReLU) keeps
+        // unit scale and so contributes nothing.
+        let sd: Vec<f64> = (0..c)
+            .map(|a| {
+                let s = cov[(a, a)].max(0.0).sqrt();
+                if s > 1e-6 {
+                    s
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let mut corr = cov.clone();
+        for a in 0..c {
+            for b in 0..c {
+                corr[(a, b)] /= sd[a] * sd[b];
+            }
+        }
+        let eig = nalgebra::SymmetricEigen::new(corr);
+        let mut order: Vec<usize> = (0..c).collect();
+        order.sort_by(|&i, &j| eig.eigenvalues[j].total_cmp(&eig.eigenvalues[i]));
+        let total: f64 = eig.eigenvalues.iter().map(|&e| e.max(0.0)).sum();
+        let kept: f64 = order[..HOG_DIM]
+            .iter()
+            .map(|&i| eig.eigenvalues[i].max(0.0))
+            .sum();
+        // Mean squared norm of the projected, standardised cells is the sum
+        // of the kept eigenvalues.
+        let scale = (target_sq_norm / kept.max(1e-12)).sqrt();
+        let mut basis = vec![0.0f32; HOG_DIM * c];
+        for (k, &i) in order[..HOG_DIM].iter().enumerate() {
+            // A sign that makes the direction's largest loading positive,
+            // so that refits agree.
+            let col = eig.eigenvectors.column(i);
+            let sign = if col
+                .iter()
+                .fold(0.0f64, |m, &x| if x.abs() > m.abs() { x } else { m })
+                < 0.0
+            {
+                -1.0
+            } else {
+                1.0
+            };
+            for a in 0..c {
+                basis[k * c + a] = (sign * scale * col[a] / sd[a]) as f32;
+            }
+        }
+        Ok(Self {
+            channels: c,
+            mean: mean.iter().map(|&m| m as f32).collect(),
+            basis,
+            variance_kept: if total > 0.0 { kept / total } else { 0.0 },
+        })
+    }
+
+    /// Reads a projection file (tensors `mean` `[C]` and `basis`
+    /// `[31, C]`, metadata `variance_kept`).
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, VisionError> {
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| bad(format!("cell projection file: {e}")))?;
+        let read = |name: &str| -> Result<(Vec<usize>, Vec<f32>), VisionError> {
+            let t = st
+                .tensor(name)
+                .map_err(|_| bad(format!("cell projection file: no tensor {name}")))?;
+            if t.dtype() != Dtype::F32 {
+                return Err(bad(format!("cell projection file: {name} is not F32")));
+            }
+            let data = t
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            Ok((t.shape().to_vec(), data))
+        };
+        let (ms, mean) = read("mean")?;
+        let (bs, basis) = read("basis")?;
+        let c = mean.len();
+        if ms != [c] || bs != [HOG_DIM, c] || c < HOG_DIM {
+            return Err(bad(format!(
+                "cell projection file: mean {ms:?} and basis {bs:?} do not fit"
+            )));
+        }
+        if mean.iter().chain(&basis).any(|v| !v.is_finite()) {
+            return Err(VisionError::NonFinite("cell projection"));
+        }
+        let (_, meta) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| bad(format!("cell projection file: {e}")))?;
+        let variance_kept = meta
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get("variance_kept"))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0.0);
+        Ok(Self {
+            channels: c,
+            mean,
+            basis,
+            variance_kept,
+        })
+    }
+
+    /// The file [`Self::from_bytes`] reads, with `metadata` added.
+    pub fn to_bytes(
+        &self,
+        metadata: &std::collections::HashMap<String, String>,
+    ) -> Result<Vec<u8>, VisionError> {
+        let as_bytes = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let (mean, basis) = (as_bytes(&self.mean), as_bytes(&self.basis));
+        let views = [
+            (
+                "mean",
+                TensorView::new(Dtype::F32, vec![self.channels], &mean)
+                    .map_err(|e| bad(e.to_string()))?,
+            ),
+            (
+                "basis",
+                TensorView::new(Dtype::F32, vec![HOG_DIM, self.channels], &basis)
+                    .map_err(|e| bad(e.to_string()))?,
+            ),
+        ];
+        let mut meta = metadata.clone();
+        meta.insert("variance_kept".into(), format!("{:.6}", self.variance_kept));
+        safetensors::serialize(views, Some(meta)).map_err(|e| bad(e.to_string()))
+    }
+
+    /// The cells of a backbone map: the first `floor(w / 8) x floor(h /
+    /// 8)` of its `ceil` ones (HOG's count), projected.
+    pub fn project(
+        &self,
+        map: &FeatureMap,
+        width: usize,
+        height: usize,
+    ) -> Result<HogMap, VisionError> {
+        if map.channels != self.channels || width > map.width || height > map.height {
+            return Err(bad(format!(
+                "cell projection of {} channels cannot take a {}-channel {}x{} map to {width}x{height} cells",
+                self.channels, map.channels, map.width, map.height
+            )));
+        }
+        let c = self.channels;
+        let plane = map.width * map.height;
+        // The mean folded into a bias: basis * mean.
+        let bias: Vec<f32> = (0..HOG_DIM)
+            .map(|k| {
+                (0..c)
+                    .map(|a| self.basis[k * c + a] * self.mean[a])
+                    .sum::<f32>()
+            })
+            .collect();
+        let mut data = vec![0.0f32; width * height * HOG_STRIDE];
+        for y in 0..height {
+            let out = &mut data[y * width * HOG_STRIDE..(y + 1) * width * HOG_STRIDE];
+            for cell in out.chunks_exact_mut(HOG_STRIDE) {
+                for (o, b) in cell.iter_mut().zip(&bias) {
+                    *o = -b;
+                }
+            }
+            let row = &map.data[y * map.width..];
+            // out (width x 31, row stride 32) += A (width x c) * B (c x 31)
+            // with A(i, a) = map[a][y][i] and B(a, k) = basis[k][a].
+            // SAFETY: A reads map.data[a * plane + y * map.width + i] for i <
+            // width <= map.width and a < c: inside the c planes; B reads
+            // basis[k * c + a] < 31 * c; C writes out[i * 32 + k] for i <
+            // width, k < 31: inside `out`. No aliasing (distinct borrows).
+            unsafe {
+                matrixmultiply::sgemm(
+                    width,
+                    c,
+                    HOG_DIM,
+                    1.0,
+                    row.as_ptr(),
+                    1,
+                    plane as isize,
+                    self.basis.as_ptr(),
+                    1,
+                    c as isize,
+                    1.0,
+                    out.as_mut_ptr(),
+                    HOG_STRIDE as isize,
+                    1,
+                );
+            }
+        }
+        HogMap::from_raw(width, height, data)
+    }
+
+    /// A short fingerprint of the projection (and so of the cells a model
+    /// was trained on): the first 16 hex digits of the SHA-256 of its
+    /// numbers.
+    pub fn fingerprint(&self) -> String {
+        let mut h = Sha256::new();
+        for v in self.mean.iter().chain(&self.basis) {
+            h.update(v.to_le_bytes());
+        }
+        h.finalize()
+            .iter()
+            .take(8)
+            .map(|b| format!("{b:02x}"))
+            .collect()
+    }
+}
+
+/// The backbone and its projection: what turns an image into learned
+/// cells.
+#[derive(Debug)]
+pub struct LearnedCells {
+    pub backbone: Backbone,
+    pub projection: CellProjection,
+}
+
+static BUILTIN: OnceLock<Result<LearnedCells, VisionError>> = OnceLock::new();
+
+impl LearnedCells {
+    /// The backbone and projection built into the binary (parsed once).
+    pub fn builtin() -> Result<&'static LearnedCells, VisionError> {
+        BUILTIN
+            .get_or_init(|| {
+                let backbone = Backbone::from_bytes(BACKBONE_FILE)
+                    .map_err(|e| bad(format!("built-in backbone: {e}")))?;
+                let projection = CellProjection::from_bytes(PROJECTION_FILE)?;
+                if projection.channels != backbone.channels || backbone.stride != CELL_SIZE {
+                    return Err(bad(format!(
+                        "built-in backbone ({} channels, stride {}) and projection ({} channels) do not fit",
+                        backbone.channels, backbone.stride, projection.channels
+                    )));
+                }
+                Ok(LearnedCells {
+                    backbone,
+                    projection,
+                })
+            })
+            .as_ref()
+            .map_err(Clone::clone)
+    }
+
+    /// The cells of `img`: `floor(w / 8) x floor(h / 8)` of them, like
+    /// HOG's.
+    pub fn cells(&self, img: &ColorImage) -> Result<HogMap, VisionError> {
+        let (w, h) = (img.width() / CELL_SIZE, img.height() / CELL_SIZE);
+        if w == 0 || h == 0 {
+            return HogMap::from_raw(w, h, Vec::new());
+        }
+        let map = self.backbone.forward(img);
+        self.projection.project(&map, w, h)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
+        let mut rng = crate::vision::rng::SplitMix64::new(seed);
+        let data = (0..w * h * 3)
+            .map(|_| (rng.next_f64() * 255.0) as f32)
+            .collect();
+        ColorImage::new(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn learned_cells_have_hogs_layout_and_the_fitted_scale() {
+        let cells = LearnedCells::builtin().unwrap();
+        let img = noise_image(67, 45, 3);
+        let map = cells.cells(&img).unwrap();
+        assert_eq!((map.width(), map.height()), (8, 5));
+        // Each cell is the projection of the backbone's cell.
+        let f = cells.backbone.forward(&img);
+        let p = &cells.projection;
+        for (x, y) in [(0, 0), (7, 4), (3, 2)] {
+            for k in [0, 13, HOG_DIM - 1] {
+                let want: f32 = (0..p.channels)
+                    .map(|a| p.basis[k * p.channels + a] * (f.get(a, x, y) - p.mean[a]))
+                    .sum();
+                let got = map.cell(x, y)[k];
+                assert!(
+                    (got - want).abs() < 1e-3 * (1.0 + want.abs()),
+                    "{got} {want}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn projection_round_trips_and_fit_keeps_the_leading_variance() {
+        // Maps whose 40 channels are mixtures of 3 sources: 3 directions
+        // carry all the variance.
+        let mut rng = crate::vision::rng::SplitMix64::new(9);
+        let (c, w, h) = (40, 20, 10);
+        let mix: Vec<f64> = (0..c * 3).map(|_| rng.next_f64() - 0.5).collect();
+        let mut data = vec![0.0f32; c * w * h];
+        for i in 0..w * h {
+            let s = [rng.next_f64(), rng.next_f64(), rng.next_f64()];
+            for a in 0..c {
+                data[a * w * h + i] =
+                    (1.0 + (0..3).map(|j| mix[a * 3 + j] * s[j]).sum::<f64>()) as f32;
+            }
+        }
+        let map = FeatureMap {
+            channels: c,
+            width: w,
+            height: h,
+            data,
+        };
+        let p = CellProjection::fit(std::slice::from_ref(&map), 2.0).unwrap();
+        assert!(p.variance_kept > 0.999, "{}", p.variance_kept);
+        let cells = p.project(&map, w, h).unwrap();
+        let msq: f64 = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                cells
+                    .cell(x, y)
+                    .iter()
+                    .map(|&v| f64::from(v * v))
+                    .sum::<f64>()
+            })
+            .sum::<f64>()
+            / (w * h) as f64;
+        assert!((msq - 2.0).abs() < 0.05, "{msq}");
+        let back = CellProjection::from_bytes(&p.to_bytes(&Default::default()).unwrap()).unwrap();
+        assert_eq!(back.mean, p.mean);
+        assert_eq!(back.basis, p.basis);
+        assert_eq!(back.fingerprint(), p.fingerprint());
+        assert!(CellProjection::from_bytes(b"not a file").is_err());
+    }
+}
