@@ -11,6 +11,7 @@ use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{scene, Scene, SceneParams, SynthObject};
 use sdhop::train::{train_model, PyramidCache, TrainParams};
+use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::box_iou;
 use sdhop::vision::energy::hop_curvature;
 use sdhop::vision::mask::Mask;
@@ -149,6 +150,62 @@ fn training_learns_to_detect_and_segment_held_out_scenes() {
     );
     assert!(box_hits >= n - 1, "{box_hits}/{n} boxes found");
     assert!(mask_iou >= 0.6, "mask IoU {mask_iou}");
+}
+
+/// The same training on learned cells (`--features cnn`): the model
+/// records its feature kind and the projection it was trained on, round
+/// trips, and finds held-out scenes' objects.
+#[test]
+fn training_on_learned_cells_detects_held_out_scenes() {
+    let mut params = TrainParams {
+        template_scale: 1.0,
+        max_passes: 4,
+        mining_passes: 2,
+        init_locations: 20,
+        ..TrainParams::default()
+    };
+    params.pyramid.features = FeatureKind::Cnn;
+    let cache = PyramidCache::default();
+    let mut samples = Vec::new();
+    for seed in 0..10 {
+        samples.push(make_sample(&cache, &params, &OBJECT, 100 + seed, Some("thing")).0);
+    }
+    for (k, other) in [11u64, 23].iter().enumerate() {
+        let obj = SynthObject {
+            seed: *other,
+            ..OBJECT
+        };
+        for seed in 0..4 {
+            samples.push(make_sample(&cache, &params, &obj, 200 + 10 * k as u64 + seed, None).0);
+        }
+    }
+    let refs: Vec<&Sample> = samples.iter().collect();
+    let pb = indicatif::ProgressBar::hidden();
+    let (model, _) = train_model("thing", &refs, &cache, &params, &pb).unwrap();
+    assert_eq!(model.meta.pyramid.features, FeatureKind::Cnn);
+    assert_eq!(model.meta.cells, FeatureKind::Cnn.fingerprint().unwrap());
+    let loaded = Model::from_bytes(&model.to_bytes().unwrap()).unwrap();
+    assert_eq!(loaded, model);
+    let opts = DetectOptions {
+        threshold: Some(-1e9),
+        max_detections: Some(1),
+        ..DetectOptions::default()
+    };
+    let n = 8u64;
+    let hits = (0..n)
+        .filter(|seed| {
+            let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
+            let resp = detect_image(&sc.image, &[&loaded], &opts).unwrap();
+            resp.detections.first().is_some_and(|d| {
+                box_iou(
+                    (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                    sc.truth_box,
+                ) >= 0.5
+            })
+        })
+        .count() as u64;
+    eprintln!("learned cells, held-out: {hits}/{n} boxes");
+    assert!(hits >= n - 2, "{hits}/{n} boxes found");
 }
 
 /// Bad training input ends with exit status 2 and a message naming it.

@@ -28,7 +28,9 @@ pub(crate) struct TrainSettings {
     pub(crate) template: Option<[usize; 2]>,
     /// What a cell's vector is: `hog` (Felzenszwalb's HOG) or `cnn` (the
     /// pretrained EfficientNet-Lite0 backbone's cells, built in; see
-    /// docs/training.md).
+    /// docs/training.md, "Learned cells"). Default: `cnn` for `train
+    /// --coco`, `hog` for the CMU_KO8 routes and `mesh` (what won on the
+    /// development data of each).
     #[arg(long, value_parser = crate::vision::cells::FeatureKind::parse)]
     pub(crate) features: Option<crate::vision::cells::FeatureKind>,
     /// Pyramid levels per octave.

@@ -61,7 +61,7 @@ pub(crate) fn run_cells(args: &CellsArgs) -> Result<(), Failure> {
             for &s in &args.scales {
                 let w = ((img.width() as f64 * s).round() as usize).max(16);
                 let h = ((img.height() as f64 * s).round() as usize).max(16);
-                let level = img.resize_area(w, h).map_err(Failure::input)?;
+                let level = img.resize_smooth(w, h).map_err(Failure::input)?;
                 let map = backbone.forward(&level);
                 let hm = hog(&level);
                 for y in 0..hm.height() {

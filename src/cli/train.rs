@@ -8,6 +8,7 @@ use crate::train::ko8::{train_object_sources, Source};
 use crate::train::multiview::{MultiViewParams, Sources};
 use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{TrainError, TrainReport};
+use crate::vision::cells::FeatureKind;
 use std::sync::Arc;
 
 #[derive(clap::Args)]
@@ -102,6 +103,23 @@ pub(crate) struct TrainArgs {
 /// -1.0, the same at -1.25).
 const VIEWS_THRESHOLD: f64 = -1.0;
 
+/// The cells `train --coco` uses unless `--features` (or a `--config`
+/// file's pyramid) says otherwise: the learned ones, which win on the
+/// development photographs of that route (docs/training.md).
+const COCO_FEATURES: FeatureKind = FeatureKind::Cnn;
+
+/// Whether the `--config` file names the pyramid's feature kind.
+fn config_sets_features(st: &TrainSettings) -> Result<bool, Failure> {
+    let Some(path) = &st.config else {
+        return Ok(false);
+    };
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
+    Ok(v.get("pyramid").and_then(|p| p.get("features")).is_some())
+}
+
 /// Full searches at most when [`crate::train::small_object_scales`]
 /// applies (unless `--max-passes` says otherwise).
 const SMALL_OBJECT_PASSES: usize = 15;
@@ -152,6 +170,12 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 .unwrap_or_else(|| vec![Source::Single, Source::Boxes]);
             let mut params = params_for(&params, &sources, args.settings.threshold.is_some());
             let st = &args.settings;
+            // Photographs of your own objects: learned cells unless told
+            // (LM-O, 50 box-only photographs: mean AUC 0.29 -> see
+            // docs/training.md, "Learned cells").
+            if st.features.is_none() && !config_sets_features(st)? {
+                params.pyramid.features = COCO_FEATURES;
+            }
             let scales_set = st.config.is_some()
                 || st.template_scale.is_some()
                 || st.template.is_some()

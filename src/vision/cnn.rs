@@ -266,7 +266,12 @@ impl Depthwise {
                         // Output columns whose input column
                         // ox * s + dx - left lies in 0..width.
                         let lo = left.saturating_sub(dx).div_ceil(s);
-                        let hi = ((x.width + left - dx - 1) / s + 1).min(ow);
+                        // (None where even column 0 is past the right
+                        // edge: a map narrower than the kernel's reach.)
+                        let Some(span) = (x.width + left).checked_sub(dx + 1) else {
+                            continue;
+                        };
+                        let hi = (span / s + 1).min(ow);
                         if lo >= hi {
                             continue;
                         }
@@ -612,7 +617,10 @@ impl Backbone {
                         // Output columns whose input column 2 ox + dx - left
                         // lies in 0..w.
                         let lo = left.saturating_sub(dx).div_ceil(2);
-                        let hi = ((w + left - dx - 1) / 2 + 1).min(ow);
+                        let Some(span) = (w + left).checked_sub(dx + 1) else {
+                            continue;
+                        };
+                        let hi = (span / 2 + 1).min(ow);
                         if lo >= hi {
                             continue;
                         }
@@ -796,7 +804,16 @@ mod tests {
         let mut rng = crate::vision::rng::SplitMix64::new(5);
         // Sizes around the bands and strides: odd, even, a single band,
         // several with a short last one.
-        for (w, h) in [(9, 7), (64, 48), (131, 77), (200, 150), (33, 260)] {
+        for (w, h) in [
+            (1, 1),
+            (8, 8),
+            (9, 7),
+            (16, 3),
+            (64, 48),
+            (131, 77),
+            (200, 150),
+            (33, 260),
+        ] {
             let data = (0..w * h * 3)
                 .map(|_| (rng.next_f64() * 255.0) as f32)
                 .collect();

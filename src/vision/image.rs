@@ -82,6 +82,30 @@ impl ColorImage {
     /// exact mean of the input area it covers (an anti-aliased downscale, and a
     /// bilinear-like box upscale). Resizing to the same size is the identity.
     pub fn resize_area(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
+        self.resize_with(new_w, new_h, area_weights)
+    }
+
+    /// Resizes by area averaging along an axis that shrinks and by linear
+    /// interpolation (pixel centres aligned) along one that grows: what a
+    /// network trained on photographs resampled smoothly should see, where
+    /// [`Self::resize_area`]'s box upscale makes every pixel a block.
+    pub fn resize_smooth(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
+        self.resize_with(new_w, new_h, |src, dst| {
+            if dst > src {
+                linear_weights(src, dst)
+            } else {
+                area_weights(src, dst)
+            }
+        })
+    }
+
+    /// A separable resize with the taps `weights(src, dst)` gives per axis.
+    fn resize_with(
+        &self,
+        new_w: usize,
+        new_h: usize,
+        weights: impl Fn(usize, usize) -> Vec<Vec<(usize, f32)>>,
+    ) -> Result<Self, VisionError> {
         if new_w == 0 || new_h == 0 {
             return Err(VisionError::EmptyImage {
                 width: new_w,
@@ -91,8 +115,8 @@ impl ColorImage {
         if new_w == self.width && new_h == self.height {
             return Ok(self.clone());
         }
-        let wx = FlatTaps::new(&area_weights(self.width, new_w));
-        let wy = area_weights(self.height, new_h);
+        let wx = FlatTaps::new(&weights(self.width, new_w));
+        let wy = weights(self.height, new_h);
         // Horizontal pass: height x new_w.
         let mut tmp = vec![0.0f32; self.height * new_w * CHANNELS];
         match wx.width {
@@ -196,6 +220,24 @@ impl FlatTaps {
             }
         }
     }
+}
+
+/// Linear interpolation's taps: output `o` samples the input at `(o + 0.5)
+/// * src / dst - 0.5` (pixel centres aligned, clamped to the border).
+pub fn linear_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
+    let scale = src as f64 / dst as f64;
+    (0..dst)
+        .map(|o| {
+            let x = ((o as f64 + 0.5) * scale - 0.5).clamp(0.0, (src - 1) as f64);
+            let i = x.floor() as usize;
+            let f = x - i as f64;
+            if i + 1 < src && f > 0.0 {
+                vec![(i, (1.0 - f) as f32), (i + 1, f as f32)]
+            } else {
+                vec![(i, 1.0)]
+            }
+        })
+        .collect()
 }
 
 /// For each output coordinate, the input coordinates it overlaps and the
@@ -333,5 +375,26 @@ mod tests {
                 .all(|(a, b)| a.to_bits() == b.to_bits());
             assert!(same, "{nw}x{nh} differs from the reference");
         }
+    }
+
+    #[test]
+    fn smooth_resize_interpolates_upward_and_averages_downward() {
+        let img = ramp(16, 12);
+        // Down: the area average itself.
+        assert_eq!(
+            img.resize_smooth(8, 6).unwrap(),
+            img.resize_area(8, 6).unwrap()
+        );
+        // Up 2x along a ramp: interior samples on the line between the
+        // input pixels' centres (no blocks: neighbours differ).
+        let up = img.resize_smooth(32, 12).unwrap();
+        let (a, b, c) = (up.get(10, 5, 0), up.get(11, 5, 0), up.get(12, 5, 0));
+        assert!(
+            (b - a) > 0.0 && ((c - b) - (b - a)).abs() < 1e-3,
+            "{a} {b} {c}"
+        );
+        let x = (11.0 + 0.5) * 0.5 - 0.5;
+        let want = img.get(5, 5, 0) + (x - 5.0) as f32 * (img.get(6, 5, 0) - img.get(5, 5, 0));
+        assert!((b - want).abs() < 1e-3, "{b} {want}");
     }
 }

@@ -243,7 +243,12 @@ pub fn feature_levels(
             if (lw, lh) == (w, h) {
                 return Ok((lw, lh, params.features.cells(img)?));
             }
-            let resized = img.resize_area(lw, lh)?;
+            // HOG levels as ever; learned cells see upsampled levels
+            // interpolated, not in blocks.
+            let resized = match params.features {
+                FeatureKind::Hog => img.resize_area(lw, lh)?,
+                FeatureKind::Cnn => img.resize_smooth(lw, lh)?,
+            };
             Ok((lw, lh, params.features.cells(&resized)?))
         })
         .collect()
