@@ -19,6 +19,9 @@ COPY src ./src
 COPY benches ./benches
 COPY kernels ./kernels
 COPY openapi.yaml ./
+# The learned cells' backbone and projection are built into the binaries
+# (include_bytes!).
+COPY models/backbones ./models/backbones
 RUN touch src/lib.rs src/bin/*.rs && cargo build --release --locked --bins
 
 FROM debian:bookworm-slim
