@@ -4,6 +4,7 @@ use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use sdhop::train::ko8::above_threshold;
+use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::{box_iou, DetectParams, Detector, PlanarMaps, Region, Transfer};
 use sdhop::vision::energy::ViewWeights;
 use sdhop::vision::image::ColorImage;
@@ -132,6 +133,36 @@ fn pruning_returns_exactly_the_unpruned_detections() {
             assert_eq!(st_f.min_cuts, st_f.locations);
             if threshold == t0 {
                 assert!(st_p.min_cuts * 10 < st_p.locations, "{st_p:?}");
+            }
+        }
+    }
+}
+
+/// The bounds assume nothing of a cell's numbers (learned cells are signed,
+/// HOG's are not): pruning stays exact on learned cells.
+#[test]
+fn pruning_is_exact_on_learned_cells_too() {
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let detector = Detector::new(&model.views).unwrap();
+    let mut params = model.meta.pyramid;
+    params.features = FeatureKind::Cnn;
+    for s in scenes(2) {
+        let pyr = FeaturePyramid::build(&s.image, &params, &model.meta.segmentation).unwrap();
+        let t0 = model.meta.detection.threshold;
+        for (threshold, max_detections) in [(t0, 5), (t0 - 3.0, 20), (-1e6, 5)] {
+            let mut p = DetectParams {
+                max_detections,
+                threshold,
+                ..model.meta.detection
+            };
+            p.prune = true;
+            let (pruned, st_p) = detector.detect(&pyr, &p).unwrap();
+            p.prune = false;
+            let (full, _) = detector.detect(&pyr, &p).unwrap();
+            assert_eq!(pruned, full, "threshold {threshold}, max {max_detections}");
+            if threshold == -1e6 {
+                assert_eq!(full.len(), max_detections);
+                assert!(st_p.min_cuts < st_p.locations, "{st_p:?}");
             }
         }
     }

@@ -127,6 +127,8 @@ pub struct ModelInfo {
     pub file: String,
     pub sha256: String,
     pub size_bytes: u64,
+    /// What its cells are: `hog` or `cnn` (learned).
+    pub features: &'static str,
     /// Default detection threshold.
     pub threshold: f64,
     /// Cross-validated figures stored in the model, if any.
@@ -152,6 +154,7 @@ pub async fn models(State(state): State<Arc<AppState>>) -> Json<Vec<ModelInfo>> 
                         .unwrap_or_default(),
                     sha256: m.sha256.clone(),
                     size_bytes: m.size_bytes,
+                    features: meta.pyramid.features.name(),
                     threshold: meta.detection.threshold,
                     training: training_figures(&meta.provenance),
                 }

@@ -717,6 +717,10 @@ pub const SMALL_OBJECT_CELLS: f64 = 12.0;
 /// glue, 41x82 px, 4x8).
 pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
 
+/// How far below the template scale the pyramid of a small object on
+/// learned cells goes (a factor; HOG's is 4).
+pub const LEARNED_SCALES_BELOW: f64 = std::f64::consts::SQRT_2;
+
 /// Template scale and pyramid for small objects: when the median box of
 /// `sizes` (`(width, height)` in pixels) would make a template of under
 /// [`SMALL_TEMPLATE_CELLS`] (on the side of a square of its area) at
@@ -749,7 +753,15 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
     let mut out = params.clone();
     out.template_scale = scale;
     out.pyramid.max_scale = max_scale as f32;
-    out.pyramid.min_scale = ((scale / 4.0) as f32).min(out.pyramid.min_scale);
+    // Learned cells go down half an octave below the template scale (the
+    // issue's measurement searched 1.26-2.52 around the LM-O objects'
+    // 1.8): their large receptive fields make far smaller levels (the
+    // objects seen four times the median) a source of false positives.
+    out.pyramid.min_scale = if params.pyramid.features.is_hog() {
+        ((scale / 4.0) as f32).min(out.pyramid.min_scale)
+    } else {
+        ((scale / LEARNED_SCALES_BELOW) as f32).min(max_scale as f32)
+    };
     out.pyramid.levels_per_octave = 5;
     Some(out)
 }

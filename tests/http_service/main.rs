@@ -650,6 +650,20 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         let path: &'static str = path;
         let (s, _, body) = call(&spec, &mut seen, path, "get", c.get(server.url(path))).await;
         assert_eq!(s, want, "{path}");
+        if path == "/models" {
+            // Every model names its cells (the shipped ones are HOG).
+            let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+            let kinds: Vec<&str> = v
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|m| m["features"].as_str().unwrap())
+                .collect();
+            assert!(
+                !kinds.is_empty() && kinds.iter().all(|k| *k == "hog"),
+                "{kinds:?}"
+            );
+        }
         if path == "/metrics" {
             let text = String::from_utf8(body).unwrap();
             for name in [
