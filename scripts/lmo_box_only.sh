@@ -21,18 +21,13 @@ first=${FIRST:-50}
 bin=${BIN:-target/release/sdhop-train}
 mkdir -p "$out"
 python3 ../shared/tools/lmo_boxes_coco.py "$data" --first "$first" --out "$out/boxes.json"
-timer=()
-if [ -x /usr/bin/time ]; then timer=(/usr/bin/time -v); fi
 merge=()
 for o in $objects; do
     mkdir -p "$out/models-$o"
-    if [ ${#timer[@]} -gt 0 ]; then
-        "${timer[@]}" -o "$out/$o.time" "$bin" train --coco "$out/boxes.json" --images "$out" \
-            --category "$o" --out "$out/models-$o" "$@" 2>&1 | grep -v '^skipped' || true
-    else
-        "$bin" train --coco "$out/boxes.json" --images "$out" --category "$o" \
-            --out "$out/models-$o" "$@" 2>&1 | grep -v '^skipped' || true
-    fi
+    timer=()
+    if [ -x /usr/bin/time ]; then timer=(/usr/bin/time -v -o "$out/$o.time"); fi
+    "${timer[@]}" "$bin" train --coco "$out/boxes.json" --images "$out" --category "$o" \
+        --out "$out/models-$o" "$@" 2>&1 | grep -v '^skipped' || true
     [ -f "$out/models-$o/$o.safetensors" ] || { echo "training $o failed" >&2; exit 1; }
     "$bin" bop-eval --data "$data" --models-dir "$out/models-$o" --train-photos "$first" \
         --out "$out/eval-$o"

@@ -31,8 +31,8 @@ pub(crate) struct TrainSettings {
     /// docs/training.md, "Learned cells"). Default: `cnn` for `train
     /// --coco`, `hog` for the CMU_KO8 routes and `mesh` (what won on the
     /// development data of each).
-    #[arg(long, value_parser = crate::vision::cells::FeatureKind::parse)]
-    pub(crate) features: Option<crate::vision::cells::FeatureKind>,
+    #[arg(long, value_parser = FeatureKind::parse)]
+    pub(crate) features: Option<FeatureKind>,
     /// Pyramid levels per octave.
     #[arg(long)]
     pub(crate) levels_per_octave: Option<u32>,
@@ -101,15 +101,31 @@ pub(crate) struct TrainSettings {
 }
 
 impl TrainSettings {
-    pub(crate) fn params(&self) -> Result<(TrainParams, NegativeSet), Failure> {
+    /// The settings: the `--config` file's, then the flags'. `features` is
+    /// the route's feature kind, taken where neither names one.
+    pub(crate) fn params(
+        &self,
+        features: FeatureKind,
+    ) -> Result<(TrainParams, NegativeSet), Failure> {
         let mut p = match &self.config {
             Some(path) => {
                 let text = std::fs::read_to_string(path)
                     .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
-                serde_json::from_str(&text)
-                    .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?
+                let json: serde_json::Value = serde_json::from_str(&text)
+                    .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
+                let named = json.pointer("/pyramid/features").is_some();
+                let mut p: TrainParams = serde_json::from_value(json)
+                    .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
+                if !named {
+                    p.pyramid.features = features;
+                }
+                p
             }
-            None => TrainParams::default(),
+            None => {
+                let mut p = TrainParams::default();
+                p.pyramid.features = features;
+                p
+            }
         };
         if let Some(v) = self.c {
             p.c = v;

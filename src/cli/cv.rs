@@ -103,7 +103,7 @@ pub(crate) type BestCv = (
 );
 
 pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
-    let (mut params, neg) = args.settings.params()?;
+    let (mut params, neg) = args.settings.params(FeatureKind::Hog)?;
     if args.folds < 2 {
         return Err(Failure::input("--folds must be at least 2"));
     }

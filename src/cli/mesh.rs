@@ -335,7 +335,7 @@ pub(crate) fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
 
 pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let start = std::time::Instant::now();
-    let (mut params, _) = args.settings.params()?;
+    let (mut params, _) = args.settings.params(FeatureKind::Hog)?;
     // Templates of about 12 cells (smaller ones fit even their own
     // training renders badly: 50% top-1 with 5-8 cells); upsampled levels
     // find objects down to 40% of that (training must see those levels

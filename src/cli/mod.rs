@@ -37,6 +37,7 @@ use crate::train::ko8::{
 
 use crate::train::loss::LossKind;
 use crate::train::{progress_bar, train_model, PyramidCache, TrainParams};
+use crate::vision::cells::FeatureKind;
 use crate::vision::detect::box_iou;
 use crate::vision::energy::PairwiseMode;
 use crate::vision::image::ColorImage;

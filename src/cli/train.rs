@@ -8,7 +8,6 @@ use crate::train::ko8::{train_object_sources, Source};
 use crate::train::multiview::{MultiViewParams, Sources};
 use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{TrainError, TrainReport};
-use crate::vision::cells::FeatureKind;
 use std::sync::Arc;
 
 #[derive(clap::Args)]
@@ -108,18 +107,6 @@ const VIEWS_THRESHOLD: f64 = -1.0;
 /// development photographs of that route (docs/training.md).
 const COCO_FEATURES: FeatureKind = FeatureKind::Cnn;
 
-/// Whether the `--config` file names the pyramid's feature kind.
-fn config_sets_features(st: &TrainSettings) -> Result<bool, Failure> {
-    let Some(path) = &st.config else {
-        return Ok(false);
-    };
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?;
-    Ok(v.get("pyramid").and_then(|p| p.get("features")).is_some())
-}
-
 /// Full searches at most when [`crate::train::small_object_scales`]
 /// applies (unless `--max-passes` says otherwise).
 const SMALL_OBJECT_PASSES: usize = 15;
@@ -136,7 +123,14 @@ fn params_for(params: &TrainParams, sources: &[Source], flag: bool) -> TrainPara
 }
 
 pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
-    let (params, neg) = args.settings.params()?;
+    // Photographs of your own objects: learned cells unless told (LM-O,
+    // 50 box-only photographs: see docs/training.md, "Learned cells").
+    let route_features = if args.coco.is_some() {
+        COCO_FEATURES
+    } else {
+        FeatureKind::Hog
+    };
+    let (params, neg) = args.settings.params(route_features)?;
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
     let cv: Option<serde_json::Value> = match &args.cv_report {
@@ -170,12 +164,6 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 .unwrap_or_else(|| vec![Source::Single, Source::Boxes]);
             let mut params = params_for(&params, &sources, args.settings.threshold.is_some());
             let st = &args.settings;
-            // Photographs of your own objects: learned cells unless told
-            // (LM-O, 50 box-only photographs: mean AUC 0.29 -> see
-            // docs/training.md, "Learned cells").
-            if st.features.is_none() && !config_sets_features(st)? {
-                params.pyramid.features = COCO_FEATURES;
-            }
             let scales_set = st.config.is_some()
                 || st.template_scale.is_some()
                 || st.template.is_some()

@@ -24,7 +24,7 @@ use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use super::cnn::{Backbone, FeatureMap};
+use super::cnn::{f32_tensor, Backbone, FeatureMap};
 use super::hog::{hog, HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::image::ColorImage;
 use super::VisionError;
@@ -217,19 +217,8 @@ impl CellProjection {
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, VisionError> {
         let st = SafeTensors::deserialize(bytes)
             .map_err(|e| bad(format!("cell projection file: {e}")))?;
-        let read = |name: &str| -> Result<(Vec<usize>, Vec<f32>), VisionError> {
-            let t = st
-                .tensor(name)
-                .map_err(|_| bad(format!("cell projection file: no tensor {name}")))?;
-            if t.dtype() != Dtype::F32 {
-                return Err(bad(format!("cell projection file: {name} is not F32")));
-            }
-            let data = t
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
-            Ok((t.shape().to_vec(), data))
+        let read = |name: &str| {
+            f32_tensor(&st, name).map_err(|e| bad(format!("cell projection file: {e}")))
         };
         let (ms, mean) = read("mean")?;
         let (bs, basis) = read("basis")?;
@@ -407,17 +396,10 @@ impl LearnedCells {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
-        let mut rng = crate::vision::rng::SplitMix64::new(seed);
-        let data = (0..w * h * 3)
-            .map(|_| (rng.next_f64() * 255.0) as f32)
-            .collect();
-        ColorImage::new(w, h, data).unwrap()
-    }
+    use crate::vision::image::noise_image;
 
     #[test]
-    fn learned_cells_have_hogs_layout_and_the_fitted_scale() {
+    fn learned_cells_are_the_projected_backbone_cells_in_hogs_layout() {
         let cells = LearnedCells::builtin().unwrap();
         let img = noise_image(67, 45, 3);
         let map = cells.cells(&img).unwrap();

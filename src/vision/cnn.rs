@@ -148,6 +148,24 @@ fn same_padding(n: usize, k: usize, stride: usize) -> (usize, usize) {
     (out, total / 2)
 }
 
+/// The shape and values of the `F32` tensor `name` of a safetensors file
+/// (an error naming it when it is absent or of another type).
+pub(crate) fn f32_tensor(
+    st: &SafeTensors<'_>,
+    name: &str,
+) -> Result<(Vec<usize>, Vec<f32>), String> {
+    let t = st.tensor(name).map_err(|_| format!("no tensor {name}"))?;
+    if t.dtype() != Dtype::F32 {
+        return Err(format!("tensor {name} is {:?}, not F32", t.dtype()));
+    }
+    let data = t
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    Ok((t.shape().to_vec(), data))
+}
+
 fn relu6(v: f32) -> f32 {
     v.clamp(0.0, 6.0)
 }
@@ -500,20 +518,15 @@ impl Backbone {
         }
         let st = SafeTensors::deserialize(bytes).map_err(|e| format(e.to_string()))?;
         let read = |name: &str, expected: &[usize]| -> Result<Vec<f32>, BackboneError> {
-            let t = st
-                .tensor(name)
-                .map_err(|_| format(format!("no tensor {name}")))?;
-            if t.dtype() != Dtype::F32 || t.shape() != expected {
+            let (found, data) = f32_tensor(&st, name).map_err(format)?;
+            if found != expected {
                 return Err(BackboneError::Shape {
                     name: name.to_string(),
-                    found: t.shape().to_vec(),
+                    found,
                     expected: expected.to_vec(),
                 });
             }
-            Ok(t.data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect())
+            Ok(data)
         };
         let shape_of = |name: &str| -> Result<Vec<usize>, BackboneError> {
             st.tensor(name)
@@ -723,17 +736,7 @@ impl Backbone {
     /// the conversion script's own float64 implementation.
     pub fn reference(bytes: &[u8]) -> Result<(ColorImage, FeatureMap), BackboneError> {
         let st = SafeTensors::deserialize(bytes).map_err(|e| format(e.to_string()))?;
-        let f32s = |name: &str| -> Result<(Vec<usize>, Vec<f32>), BackboneError> {
-            let t = st
-                .tensor(name)
-                .map_err(|_| format(format!("no tensor {name}")))?;
-            let data = t
-                .data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect();
-            Ok((t.shape().to_vec(), data))
-        };
+        let f32s = |name: &str| f32_tensor(&st, name).map_err(format);
         let (s, input) = f32s("reference.input")?;
         let [h, w, 3] = s[..] else {
             return Err(format(format!("reference.input has shape {s:?}")));

@@ -451,6 +451,7 @@ pub fn hog_reference(img: &ColorImage) -> HogMap {
 #[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
+    use crate::vision::image::noise_image;
     use proptest::prelude::*;
 
     /// A grey image whose intensity rises along direction `theta`.
@@ -464,14 +465,6 @@ mod tests {
             }
         }
         ColorImage::new(w, h, d).unwrap()
-    }
-
-    fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
-        let mut rng = crate::vision::rng::SplitMix64::new(seed);
-        let data = (0..w * h * 3)
-            .map(|_| (rng.next_f64() * 255.0) as f32)
-            .collect();
-        ColorImage::new(w, h, data).unwrap()
     }
 
     #[test]

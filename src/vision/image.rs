@@ -273,6 +273,16 @@ pub fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
         .collect()
 }
 
+/// An image of uniform noise in 0..255 (tests of the feature layers).
+#[cfg(test)]
+pub(crate) fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
+    let mut rng = super::rng::SplitMix64::new(seed);
+    let data = (0..w * h * 3)
+        .map(|_| (rng.next_f64() * 255.0) as f32)
+        .collect();
+    ColorImage::new(w, h, data).unwrap()
+}
+
 #[cfg(test)]
 #[allow(clippy::needless_range_loop)]
 mod tests {
