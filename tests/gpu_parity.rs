@@ -21,9 +21,10 @@ use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::{dense_bounds, responses, DenseBounds, Location};
 use sdhop::vision::hog::HogMap;
 use sdhop::vision::image::ColorImage;
-use sdhop::vision::pyramid::{FeaturePyramid, PyramidParams};
+use sdhop::vision::pyramid::{feature_levels, FeaturePyramid, PyramidParams};
 use sdhop::vision::rng::SplitMix64;
 use sdhop::vision::segment::SegmentParams;
+use sdhop::vision::Deadline;
 
 const OBJECT: SynthObject = SynthObject {
     cols: 12,
@@ -195,6 +196,53 @@ fn hog_features_match_the_cpu() {
             assert!(worst <= 0.2, "{name}, level {l}: max difference {worst}");
         }
     }
+}
+
+/// Learned cells of the GPU (`kernels/backbone.wgsl`, levels resized with
+/// the smooth taps) against the CPU's, level by level: the same cells, and
+/// values within 1e-4 (the backbone's sixteen layers sum in another order
+/// than the CPU's GEMM; a cell's squared norm is about 1). Small images also
+/// go through upsampled levels (linear taps).
+#[test]
+#[ignore = "needs a Vulkan adapter"]
+fn learned_cells_match_the_cpu() {
+    let mut gpu = gpu();
+    let down = PyramidParams {
+        levels_per_octave: 2,
+        max_scale: 1.0,
+        min_scale: 0.5,
+        features: FeatureKind::Cnn,
+    };
+    let up = PyramidParams {
+        max_scale: 2.3,
+        ..down
+    };
+    let mut compared = 0;
+    for (name, img) in images() {
+        let small = img.width() * img.height() <= 12_000;
+        for p in if small { vec![down, up] } else { vec![down] } {
+            let maps = gpu.learned_levels(&img, &p).unwrap();
+            let cpu = feature_levels(&img, &p, Deadline::NONE).unwrap();
+            assert_eq!(maps.len(), cpu.len(), "{name}: level count");
+            for (l, (g, (_, _, c))) in maps.iter().zip(&cpu).enumerate() {
+                assert_eq!(
+                    (g.width(), g.height()),
+                    (c.width(), c.height()),
+                    "{name}, level {l}: cells"
+                );
+                let (worst, frac) = hog_diff(g, c);
+                eprintln!(
+                    "{name}, scales {}-{}, level {l}: learned cells max |diff| {worst:.2e}, {:.4}% above 1e-4",
+                    p.min_scale,
+                    p.max_scale,
+                    frac * 100.0
+                );
+                assert!(worst <= 1e-4, "{name}, level {l}: max difference {worst}");
+                compared += g.raw().len();
+            }
+        }
+    }
+    assert!(compared > 10_000, "too few values compared: {compared}");
 }
 
 fn models() -> Vec<Model> {

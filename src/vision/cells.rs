@@ -271,6 +271,19 @@ impl CellProjection {
         safetensors::serialize(views, Some(meta)).map_err(|e| bad(e.to_string()))
     }
 
+    /// The mean folded into a bias: `basis * mean` (a cell is `basis *
+    /// features - bias`).
+    pub fn bias(&self) -> Vec<f32> {
+        let c = self.channels;
+        (0..HOG_DIM)
+            .map(|k| {
+                (0..c)
+                    .map(|a| self.basis[k * c + a] * self.mean[a])
+                    .sum::<f32>()
+            })
+            .collect()
+    }
+
     /// The cells of a backbone map: the first `floor(w / 8) x floor(h /
     /// 8)` of its `ceil` ones (HOG's count), projected.
     pub fn project(
@@ -287,14 +300,7 @@ impl CellProjection {
         }
         let c = self.channels;
         let plane = map.width * map.height;
-        // The mean folded into a bias: basis * mean.
-        let bias: Vec<f32> = (0..HOG_DIM)
-            .map(|k| {
-                (0..c)
-                    .map(|a| self.basis[k * c + a] * self.mean[a])
-                    .sum::<f32>()
-            })
-            .collect();
+        let bias = self.bias();
         let mut data = vec![0.0f32; width * height * HOG_STRIDE];
         for y in 0..height {
             let out = &mut data[y * width * HOG_STRIDE..(y + 1) * width * HOG_STRIDE];

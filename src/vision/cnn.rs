@@ -66,33 +66,33 @@ struct Architecture {
 /// A 1x1 convolution: `out x inp` weights, row-major, and a bias per
 /// output channel.
 #[derive(Clone, Debug, PartialEq)]
-struct Pointwise {
-    out: usize,
-    inp: usize,
-    weight: Vec<f32>,
-    bias: Vec<f32>,
+pub(crate) struct Pointwise {
+    pub(crate) out: usize,
+    pub(crate) inp: usize,
+    pub(crate) weight: Vec<f32>,
+    pub(crate) bias: Vec<f32>,
 }
 
 /// A depthwise `k x k` convolution of stride `stride`: `channels x k x k`
 /// weights and a bias per channel.
 #[derive(Clone, Debug, PartialEq)]
-struct Depthwise {
-    channels: usize,
-    k: usize,
-    stride: usize,
-    weight: Vec<f32>,
-    bias: Vec<f32>,
+pub(crate) struct Depthwise {
+    pub(crate) channels: usize,
+    pub(crate) k: usize,
+    pub(crate) stride: usize,
+    pub(crate) weight: Vec<f32>,
+    pub(crate) bias: Vec<f32>,
 }
 
 /// An inverted-residual block: expansion (absent at ratio 1), depthwise
 /// convolution, linear projection, and the input added back where the
 /// shapes agree.
 #[derive(Clone, Debug, PartialEq)]
-struct Block {
-    expand: Option<Pointwise>,
-    depthwise: Depthwise,
-    project: Pointwise,
-    skip: bool,
+pub(crate) struct Block {
+    pub(crate) expand: Option<Pointwise>,
+    pub(crate) depthwise: Depthwise,
+    pub(crate) project: Pointwise,
+    pub(crate) skip: bool,
 }
 
 /// A feature map, channels first: value `(c, y, x)` at
@@ -142,7 +142,7 @@ pub struct Backbone {
 
 /// The total "same" padding of an axis of `n` samples, and the part of it
 /// before the first sample (TensorFlow puts the odd one after).
-fn same_padding(n: usize, k: usize, stride: usize) -> (usize, usize) {
+pub(crate) fn same_padding(n: usize, k: usize, stride: usize) -> (usize, usize) {
     let out = n.div_ceil(stride);
     let total = ((out - 1) * stride + k).saturating_sub(n);
     (out, total / 2)
@@ -667,6 +667,18 @@ impl Backbone {
             }
         }
         out
+    }
+
+    /// The stem's weights (`out x 3 x 3 x 3`), biases, and the input
+    /// normalisation (mean and standard deviation per channel), for the
+    /// GPU backend's kernels.
+    pub(crate) fn stem_parts(&self) -> (&[f32], &[f32], [f32; 3], [f32; 3]) {
+        (&self.stem, &self.stem_bias, self.mean, self.std)
+    }
+
+    /// The blocks in order, for the GPU backend's kernels.
+    pub(crate) fn blocks(&self) -> &[Block] {
+        &self.blocks
     }
 
     /// The features of `img` (RGB, 0-255): `channels` planes of

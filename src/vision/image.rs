@@ -90,13 +90,7 @@ impl ColorImage {
     /// network trained on photographs resampled smoothly should see, where
     /// [`Self::resize_area`]'s box upscale makes every pixel a block.
     pub fn resize_smooth(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
-        self.resize_with(new_w, new_h, |src, dst| {
-            if dst > src {
-                linear_weights(src, dst)
-            } else {
-                area_weights(src, dst)
-            }
-        })
+        self.resize_with(new_w, new_h, smooth_weights)
     }
 
     /// A separable resize with the taps `weights(src, dst)` gives per axis.
@@ -219,6 +213,17 @@ impl FlatTaps {
                 o.copy_from_slice(&acc);
             }
         }
+    }
+}
+
+/// The taps of [`ColorImage::resize_smooth`] along one axis: linear
+/// interpolation up, area averaging down (also uploaded to the GPU
+/// backend for learned cells).
+pub fn smooth_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
+    if dst > src {
+        linear_weights(src, dst)
+    } else {
+        area_weights(src, dst)
     }
 }
 

@@ -24,7 +24,7 @@ pub(super) struct LevelDesc {
 }
 
 impl LevelDesc {
-    fn words(&self) -> [u32; 16] {
+    pub(super) fn words(&self) -> [u32; 16] {
         [
             self.src_w,
             self.src_h,

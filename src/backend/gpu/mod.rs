@@ -3,8 +3,10 @@
 //! normalisation) of every level of every image of a batch in one
 //! submission, and the stage-1 chain bounds of every location, level and
 //! viewpoint of every model, so the CPU only runs the min-cuts where they can
-//! matter. The over-segmentation stays on the CPU and runs while the GPU
-//! works.
+//! matter. Learned cells (the backbone and projection of
+//! `kernels/backbone.wgsl`) are computed on the device too, in one more
+//! submission; where they do not fit its limits, on the CPU. The
+//! over-segmentation stays on the CPU and runs while the GPU works.
 //!
 //! The backend is owned by one thread (the inference worker), which owns the
 //! device and queue. Buffers live in a pool keyed by role and grow to the
@@ -14,6 +16,7 @@
 //! backend instead of failing.
 
 mod bounds;
+mod cells;
 mod features;
 
 use std::borrow::Cow;
@@ -39,6 +42,7 @@ const RESIZE_WGSL: &str = include_str!("../../../kernels/resize_area.wgsl");
 const HOG_WGSL: &str = include_str!("../../../kernels/hog.wgsl");
 const BOUNDS_WGSL: &str = include_str!("../../../kernels/dense_bounds.wgsl");
 const RESPONSES_WGSL: &str = include_str!("../../../kernels/responses.wgsl");
+const BACKBONE_WGSL: &str = include_str!("../../../kernels/backbone.wgsl");
 
 /// Most workgroups along one dispatch dimension that every device allows.
 const MAX_GROUPS: u32 = 65_535;
@@ -208,6 +212,10 @@ struct Kernels {
     sum_chains: wgpu::ComputePipeline,
     responses: wgpu::ComputePipeline,
     response_maps: wgpu::ComputePipeline,
+    cnn_stem: wgpu::ComputePipeline,
+    cnn_pointwise: wgpu::ComputePipeline,
+    cnn_depthwise: wgpu::ComputePipeline,
+    cnn_cells: wgpu::ComputePipeline,
 }
 
 /// An open device with the compiled kernels.
@@ -218,6 +226,8 @@ struct Context {
     max_binding: u64,
     kernels: Kernels,
     pool: Pool,
+    /// The learned cells' weights, uploaded at their first use.
+    learned: Option<cells::LearnedWeights>,
     lost: Arc<AtomicBool>,
     uncaptured: Arc<Mutex<Option<String>>>,
 }
@@ -285,6 +295,7 @@ impl Context {
         let hog = module("hog.wgsl", HOG_WGSL);
         let bounds = module("dense_bounds.wgsl", BOUNDS_WGSL);
         let resp = module("responses.wgsl", RESPONSES_WGSL);
+        let backbone = module("backbone.wgsl", BACKBONE_WGSL);
         let pipeline = |m: &wgpu::ShaderModule, entry: &'static str| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(entry),
@@ -305,6 +316,10 @@ impl Context {
             sum_chains: pipeline(&bounds, "sum_chains"),
             responses: pipeline(&resp, "responses"),
             response_maps: pipeline(&resp, "response_maps"),
+            cnn_stem: pipeline(&backbone, "stem"),
+            cnn_pointwise: pipeline(&backbone, "pointwise"),
+            cnn_depthwise: pipeline(&backbone, "depthwise"),
+            cnn_cells: pipeline(&backbone, "cells"),
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(GpuError::Validation(format!("kernels: {e}")));
@@ -322,6 +337,7 @@ impl Context {
                 buffers: HashMap::new(),
                 allocations: 0,
             },
+            learned: None,
             lost,
             uncaptured,
         })
@@ -570,6 +586,20 @@ impl GpuBackend {
             .unwrap_or_default())
     }
 
+    /// The learned cells of every level of `img` (for parity tests of
+    /// `kernels/backbone.wgsl`; `params.features` is ignored).
+    pub fn learned_levels(
+        &mut self,
+        img: &ColorImage,
+        params: &PyramidParams,
+    ) -> Result<Vec<HogMap>, GpuError> {
+        let ctx = self.device()?;
+        Ok(ctx
+            .learned_cells(&[(img, *params)])?
+            .pop()
+            .unwrap_or_default())
+    }
+
     /// The filter responses at `locations` (for parity tests of
     /// `kernels/responses.wgsl`).
     pub fn responses(
@@ -660,8 +690,9 @@ impl Backend for GpuBackend {
                 })
             })
             .collect();
-        // HOG cells on the device; learned cells (whose backbone has no
-        // kernels here yet) on the CPU, beside the segmentations.
+        // HOG cells and learned cells on the device (learned cells left to
+        // the CPU where the device cannot take them), the segmentations on
+        // the CPU meanwhile.
         let mut work: Vec<(&ColorImage, PyramidParams)> = Vec::new();
         let mut learned: Vec<(&ColorImage, PyramidParams, Deadline)> = Vec::new();
         let mut segs: Vec<(&ColorImage, SegmentParams)> = Vec::new();
@@ -677,42 +708,52 @@ impl Backend for GpuBackend {
                 }
             }
         }
-        let (features, (segmentations, learned)) = rayon::join(
+        let (features, segmentations) = rayon::join(
             || {
                 let t = Instant::now();
-                if work.is_empty() {
-                    return Some((Vec::new(), 0.0));
-                }
-                self.with_ctx(|c| c.features(&work, false))
-                    .map(|f| (f.hogs, t.elapsed().as_secs_f64() * 1e3))
+                let hogs = if work.is_empty() {
+                    Vec::new()
+                } else {
+                    self.with_ctx(|c| c.features(&work, false))?.hogs
+                };
+                let hog_ms = t.elapsed().as_secs_f64() * 1e3;
+                let t = Instant::now();
+                let cells = if learned.is_empty() {
+                    Some(Vec::new())
+                } else if learned.iter().any(|(_, _, d)| d.passed()) {
+                    None
+                } else {
+                    let jobs: Vec<(&ColorImage, PyramidParams)> =
+                        learned.iter().map(|(img, p, _)| (*img, *p)).collect();
+                    self.with_ctx(|c| c.learned_cells(&jobs))
+                };
+                Some((hogs, hog_ms, cells, t.elapsed().as_secs_f64() * 1e3))
             },
             || {
-                rayon::join(
-                    || {
-                        segs.par_iter()
-                            .map(|(img, s)| {
-                                let t = Instant::now();
-                                segment(img, s).map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
-                            })
-                            .collect::<Vec<_>>()
-                    },
-                    || {
-                        learned
-                            .par_iter()
-                            .map(|(img, p, deadline)| {
-                                let t = Instant::now();
-                                feature_levels(img, p, *deadline).map(|l| {
-                                    let maps = l.into_iter().map(|(_, _, m)| m).collect::<Vec<_>>();
-                                    (maps, t.elapsed().as_secs_f64() * 1e3)
-                                })
-                            })
-                            .collect::<Vec<_>>()
-                    },
-                )
+                segs.par_iter()
+                    .map(|(img, s)| {
+                        let t = Instant::now();
+                        segment(img, s).map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
+                    })
+                    .collect::<Vec<_>>()
             },
         );
-        let Some((hogs, gpu_ms)) = features else {
+        let Some((hogs, gpu_ms, cells, cells_ms)) = features else {
             return self.cpu.pyramids(batch);
+        };
+        let learned: Vec<Result<(Vec<HogMap>, f64), VisionError>> = match cells {
+            Some(maps) => maps.into_iter().map(|m| Ok((m, cells_ms))).collect(),
+            // On the CPU, level by level within each deadline.
+            None => learned
+                .par_iter()
+                .map(|(img, p, deadline)| {
+                    let t = Instant::now();
+                    feature_levels(img, p, *deadline).map(|l| {
+                        let maps = l.into_iter().map(|(_, _, m)| m).collect::<Vec<_>>();
+                        (maps, t.elapsed().as_secs_f64() * 1e3)
+                    })
+                })
+                .collect(),
         };
         let mut hogs = hogs.into_iter();
         let mut learned = learned.into_iter();
