@@ -97,6 +97,44 @@ pub struct ViewMeta {
     pub views: Vec<String>,
 }
 
+/// A correction of the reported box, the simplest form of DPM's
+/// bounding-box prediction: the box's centre moves by `(dx * width, dy *
+/// height)` and its size is scaled by `(sw, sh)`. Fitted by
+/// cross-validation over the training photographs (`sdhop-train train
+/// --box-folds`): on photographs a template has not seen, learned cells
+/// fire on the core of the object and the window comes out smaller than
+/// the object's box (LM-O, box-only: median 0.82-0.85 of its size).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoxCorrection {
+    pub dx: f64,
+    pub dy: f64,
+    pub sw: f64,
+    pub sh: f64,
+    /// Held-out detections it was fitted on.
+    pub samples: usize,
+}
+
+impl BoxCorrection {
+    /// Largest scale and shift a correction may apply.
+    pub const MAX_SCALE: f64 = 1.5;
+    pub const MAX_SHIFT: f64 = 0.25;
+
+    /// The corrected box of `(x, y, width, height)`.
+    pub fn apply(&self, (x, y, w, h): (f64, f64, f64, f64)) -> (f64, f64, f64, f64) {
+        let (cx, cy) = (x + 0.5 * w + self.dx * w, y + 0.5 * h + self.dy * h);
+        let (nw, nh) = (w * self.sw, h * self.sh);
+        (cx - 0.5 * nw, cy - 0.5 * nh, nw, nh)
+    }
+
+    /// Whether its numbers are within the limits above.
+    pub fn is_valid(&self) -> bool {
+        let scale =
+            |s: f64| s.is_finite() && (1.0 / Self::MAX_SCALE..=Self::MAX_SCALE).contains(&s);
+        let shift = |d: f64| d.is_finite() && d.abs() <= Self::MAX_SHIFT;
+        scale(self.sw) && scale(self.sh) && shift(self.dx) && shift(self.dy)
+    }
+}
+
 /// JSON metadata of a weights file.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ModelMeta {
@@ -121,6 +159,11 @@ pub struct ModelMeta {
     /// Default detection settings (threshold, NMS, truncation, refinement).
     pub detection: DetectParams,
     pub viewpoints: Vec<ViewMeta>,
+    /// How to turn a detection's template window into the box reported
+    /// (fitted on held-out training photographs; absent: the window as it
+    /// is).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub box_correction: Option<BoxCorrection>,
     /// Free-form provenance: how the weights were made, settings, figures.
     #[serde(default)]
     pub provenance: serde_json::Value,
@@ -262,6 +305,14 @@ impl Model {
         }
         if m.name.is_empty() {
             return Err(ModelError::Invalid("empty model name".into()));
+        }
+        if let Some(c) = m.box_correction.filter(|c| !c.is_valid()) {
+            return Err(ModelError::Invalid(format!(
+                "box correction {c:?} out of range (shift at most {}, scale within 1/{} .. {})",
+                BoxCorrection::MAX_SHIFT,
+                BoxCorrection::MAX_SCALE,
+                BoxCorrection::MAX_SCALE
+            )));
         }
         for (a, (vm, w)) in m.viewpoints.iter().zip(&self.views).enumerate() {
             if vm.rows == 0
@@ -532,6 +583,7 @@ mod tests {
                 rotations: Vec::new(),
                 views: Vec::new(),
             }],
+            box_correction: None,
             provenance: serde_json::json!({"made_by": "test"}),
         };
         Model::new(meta, vec![w]).unwrap()
@@ -580,6 +632,39 @@ mod tests {
         let mut out_of_range = shape;
         out_of_range.prob[0] = 1.5;
         assert!(m.with_shapes(vec![Some(out_of_range)]).is_err());
+    }
+
+    #[test]
+    fn box_corrections_round_trip_apply_and_are_checked() {
+        let mut m = sample();
+        let c = BoxCorrection {
+            dx: 0.02,
+            dy: -0.04,
+            sw: 1.18,
+            sh: 1.21,
+            samples: 40,
+        };
+        m.meta.box_correction = Some(c);
+        let back = Model::from_bytes(&m.to_bytes().unwrap()).unwrap();
+        assert_eq!(back.meta.box_correction, Some(c));
+        // The box grows about its moved centre.
+        let (x, y, w, h) = c.apply((100.0, 200.0, 50.0, 80.0));
+        assert!((w - 59.0).abs() < 1e-9 && (h - 96.8).abs() < 1e-9);
+        assert!((x + w / 2.0 - 126.0).abs() < 1e-9 && (y + h / 2.0 - 236.8).abs() < 1e-9);
+        // Files without one load without one.
+        assert_eq!(sample().meta.box_correction, None);
+        for bad in [
+            BoxCorrection { sw: 3.0, ..c },
+            BoxCorrection { sh: 0.0, ..c },
+            BoxCorrection { dx: 0.5, ..c },
+            BoxCorrection { dy: f64::NAN, ..c },
+        ] {
+            m.meta.box_correction = Some(bad);
+            assert!(
+                matches!(m.validate(), Err(ModelError::Invalid(_))),
+                "{bad:?}"
+            );
+        }
     }
 
     #[test]

@@ -470,15 +470,17 @@ fn detection_json(
             want_refined.then(|| refined.to_rle()),
         )
     };
+    // The template's window, corrected where the model learned how.
+    let (x, y, width, height) = m.box_correction.map_or(d.bbox, |c| c.apply(d.bbox));
     Ok(Some(DetectionJson {
         label: label.clone(),
         model: m.name.clone(),
         score,
         bbox: BoxJson {
-            x: d.bbox.0,
-            y: d.bbox.1,
-            width: d.bbox.2,
-            height: d.bbox.3,
+            x,
+            y,
+            width,
+            height,
         },
         viewpoint: d.viewpoint,
         view: m.viewpoints[d.viewpoint].views.first().cloned(),

@@ -388,6 +388,7 @@ pub fn hand_model(
             rotations: Vec::new(),
             views: Vec::new(),
         }],
+        box_correction: None,
         provenance: serde_json::json!({
             "source": "hand-built from the HOG of a synthetic object (no training)",
             "object_seed": obj.seed,

@@ -288,3 +288,85 @@ fn lean_pyramids_train_the_same_weights() {
     let (b, _) = train_model("thing", &refs, &lean, &params, &pb).unwrap();
     assert_eq!(a.views, b.views);
 }
+
+/// The box correction (`train --coco --box-folds`): fitted by 2-fold
+/// cross-validation over the training scenes (a model per fold, scored on
+/// the other fold's scenes), it leaves boxes that already fit about as they
+/// are, and the service reports every box corrected from its window.
+#[test]
+fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
+    use sdhop::train::box_correction;
+    let params = TrainParams {
+        template_scale: 1.0,
+        max_passes: 4,
+        mining_passes: 2,
+        init_locations: 20,
+        ..TrainParams::default()
+    };
+    let cache = PyramidCache::default();
+    let mut samples = Vec::new();
+    for seed in 0..20 {
+        samples.push(make_sample(&cache, &params, &OBJECT, 300 + seed, Some("thing")).0);
+    }
+    let other = SynthObject { seed: 11, ..OBJECT };
+    for seed in 0..4 {
+        samples.push(make_sample(&cache, &params, &other, 400 + seed, None).0);
+    }
+    let pb = indicatif::ProgressBar::hidden();
+    let mut trained = 0;
+    let (fitted, offsets) = box_correction::fit(&samples, 2, &cache, |subset| {
+        trained += 1;
+        // Each fold trains on the other fold's positives and every negative.
+        assert_eq!(subset.iter().filter(|s| s.annotation.is_none()).count(), 4);
+        assert_eq!(subset.iter().filter(|s| s.annotation.is_some()).count(), 10);
+        let refs: Vec<&Sample> = subset.iter().collect();
+        Ok(train_model("thing", &refs, &cache, &params, &pb)?.0)
+    })
+    .unwrap();
+    assert_eq!(trained, 2);
+    let c = fitted.expect("a correction from the held-out scenes");
+    eprintln!("box correction {c:?} from {} offsets", offsets.len());
+    assert!(c.samples >= box_correction::MIN_SAMPLES && c.samples <= 20);
+    assert!(c.is_valid());
+    // Synthetic windows fit their boxes: the correction stays small.
+    assert!(
+        (c.sw.ln().abs() < 0.25) && (c.sh.ln().abs() < 0.25),
+        "{c:?}"
+    );
+    assert!(c.dx.abs() < 0.15 && c.dy.abs() < 0.15, "{c:?}");
+
+    // Applied to every reported box: the same detections as without it,
+    // each box the corrected window.
+    let refs: Vec<&Sample> = samples.iter().collect();
+    let (plain, _) = train_model("thing", &refs, &cache, &params, &pb).unwrap();
+    let mut corrected = plain.clone();
+    let strong = sdhop::model::BoxCorrection {
+        dx: 0.1,
+        sw: 1.3,
+        ..c
+    };
+    corrected.meta.box_correction = Some(strong);
+    let corrected = Model::from_bytes(&corrected.to_bytes().unwrap()).unwrap();
+    let sc = scene(&OBJECT, &scene_params(999)).unwrap();
+    let opts = DetectOptions {
+        masks: MaskMode::None,
+        threshold: Some(-1.0),
+        ..DetectOptions::default()
+    };
+    let a = detect_image(&sc.image, &[&plain], &opts).unwrap();
+    let b = detect_image(&sc.image, &[&corrected], &opts).unwrap();
+    assert!(!a.detections.is_empty());
+    assert_eq!(a.detections.len(), b.detections.len());
+    for (p, q) in a.detections.iter().zip(&b.detections) {
+        assert_eq!(p.score, q.score);
+        let (x, y, w, h) = strong.apply((p.bbox.x, p.bbox.y, p.bbox.width, p.bbox.height));
+        for (u, v) in [
+            (x, q.bbox.x),
+            (y, q.bbox.y),
+            (w, q.bbox.width),
+            (h, q.bbox.height),
+        ] {
+            assert!((u - v).abs() < 1e-9, "{p:?} -> {q:?}");
+        }
+    }
+}

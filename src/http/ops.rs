@@ -13,7 +13,7 @@ use serde::Serialize;
 use super::error::ApiError;
 use super::state::AppState;
 use crate::backend::BackendInfo;
-use crate::model::ViewMeta;
+use crate::model::{BoxCorrection, ViewMeta};
 
 /// The API contract, served as is.
 pub const OPENAPI_YAML: &str = include_str!("../../openapi.yaml");
@@ -131,6 +131,10 @@ pub struct ModelInfo {
     pub features: &'static str,
     /// Default detection threshold.
     pub threshold: f64,
+    /// How the reported boxes are corrected from the template's window, if
+    /// the model learned it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub box_correction: Option<BoxCorrection>,
     /// Cross-validated figures stored in the model, if any.
     pub training: serde_json::Value,
 }
@@ -156,6 +160,7 @@ pub async fn models(State(state): State<Arc<AppState>>) -> Json<Vec<ModelInfo>> 
                     size_bytes: m.size_bytes,
                     features: meta.pyramid.features.name(),
                     threshold: meta.detection.threshold,
+                    box_correction: meta.box_correction,
                     training: training_figures(&meta.provenance),
                 }
             })

@@ -18,6 +18,7 @@
 //! set and the QP hand-off are one algorithm whose state they share; the
 //! loss, the QP and the CMU_KO8 driver are already their own modules.
 
+pub mod box_correction;
 pub mod cache;
 pub mod components;
 pub mod ko8;
@@ -595,6 +596,7 @@ pub fn train_joint(
                 views: Vec::new(),
             })
             .collect(),
+        box_correction: None,
         provenance: serde_json::json!({
             "source": "sdhop-train: 1-slack structural SVM (cutting plane, clarabel dual QP)",
             "params": params,
@@ -717,6 +719,12 @@ pub const SMALL_OBJECT_CELLS: f64 = 12.0;
 /// glue, 41x82 px, 4x8).
 pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
 
+/// Cells of a small object's learned-cell template across its shorter side,
+/// at least: the LM-O glue (41x82 px), 12 cells along and 6 across, scored
+/// 0.192 where 20x10 scored 0.408 (the backbone's cells see about 100
+/// pixels each, so a thin object needs more of them across).
+pub const LEARNED_CELLS_ACROSS: f64 = 10.0;
+
 /// How far below the template scale the pyramid of a small object on
 /// learned cells goes (a factor; HOG's is 4).
 pub const LEARNED_SCALES_BELOW: f64 = std::f64::consts::SQRT_2;
@@ -725,7 +733,8 @@ pub const LEARNED_SCALES_BELOW: f64 = std::f64::consts::SQRT_2;
 /// `sizes` (`(width, height)` in pixels) would make a template of under
 /// [`SMALL_TEMPLATE_CELLS`] (on the side of a square of its area) at
 /// `params`' template scale, the template is scaled up to
-/// [`SMALL_OBJECT_CELLS`] along the median box's longer side, and the
+/// [`SMALL_OBJECT_CELLS`] along the median box's longer side (learned
+/// cells: and at least [`LEARNED_CELLS_ACROSS`] across), and the
 /// pyramid upsamples far enough that the smallest box is seen at the
 /// template's size (up to 4x) and goes down to a quarter of the template
 /// scale (objects four times the median), at 5 levels per octave;
@@ -745,10 +754,15 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
     };
     let (side, _) = median_of(good.iter().map(|&(w, h)| (w * h).sqrt()).collect());
     let (median, smallest) = median_of(good.iter().map(|&(w, h)| w.max(h)).collect());
+    let (across, _) = median_of(good.iter().map(|&(w, h)| w.min(h)).collect());
     if side * params.template_scale / CELL_SIZE as f64 >= SMALL_TEMPLATE_CELLS {
         return None;
     }
-    let scale = (SMALL_OBJECT_CELLS * CELL_SIZE as f64 / median).min(4.0);
+    let mut scale = SMALL_OBJECT_CELLS * CELL_SIZE as f64 / median;
+    if !params.pyramid.features.is_hog() {
+        scale = scale.max(LEARNED_CELLS_ACROSS * CELL_SIZE as f64 / across);
+    }
+    let scale = scale.min(4.0);
     let max_scale = (scale * median / smallest).clamp(scale, 4.0);
     let mut out = params.clone();
     out.template_scale = scale;
@@ -805,6 +819,16 @@ mod tests {
             .collect();
         let p = small_object_scales(&narrow, &params).expect("narrow small objects");
         assert!((p.template_scale - 12.0 * 8.0 / 82.0).abs() < 1e-9);
+        // On learned cells it gets ten cells across (41 px), half an octave
+        // of levels below that scale.
+        let mut learned = params.clone();
+        learned.pyramid.features = crate::vision::cells::FeatureKind::Cnn;
+        let p = small_object_scales(&narrow, &learned).expect("narrow small objects");
+        assert!((p.template_scale - 10.0 * 8.0 / 41.0).abs() < 1e-9);
+        assert!(
+            (f64::from(p.pyramid.min_scale) - p.template_scale / std::f64::consts::SQRT_2).abs()
+                < 1e-5
+        );
         // Large objects keep the settings they have.
         let big: Vec<(f64, f64)> = sizes.iter().map(|&(w, h)| (4.0 * w, 4.0 * h)).collect();
         assert!(small_object_scales(&big, &params).is_none());
