@@ -9,6 +9,7 @@ use crate::train::ko8::{train_object_sources, Source};
 use crate::train::multiview::{MultiViewParams, Sources};
 use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{TrainError, TrainReport};
+use crate::vision::hog::CELL_SIZE;
 use std::sync::Arc;
 
 #[derive(clap::Args)]
@@ -123,6 +124,13 @@ const COCO_BOX_FOLDS: usize = 2;
 /// applies (unless `--max-passes` says otherwise).
 const SMALL_OBJECT_PASSES: usize = 15;
 
+/// The median of the boxes' longer sides (pixels).
+fn median_longer(sizes: &[(f64, f64)]) -> f64 {
+    let mut v: Vec<f64> = sizes.iter().map(|&(w, h)| w.max(h)).collect();
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
 /// `params` with the threshold of `sources` unless one was given (by
 /// `--threshold`, or a `--config` file that changes it).
 fn params_for(params: &TrainParams, sources: &[Source], flag: bool) -> TrainParams {
@@ -198,9 +206,9 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                         p.max_passes = SMALL_OBJECT_PASSES;
                     }
                     eprintln!(
-                        "{cat}: small objects: template scale {:.2} (about {} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
+                        "{cat}: small objects: template scale {:.2} (about {:.0} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
                         p.template_scale,
-                        crate::train::SMALL_OBJECT_CELLS,
+                        p.template_scale * median_longer(&sizes) / CELL_SIZE as f64,
                         p.pyramid.min_scale,
                         p.pyramid.max_scale,
                         p.pyramid.levels_per_octave,
