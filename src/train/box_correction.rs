@@ -18,6 +18,7 @@ use indicatif::ProgressBar;
 
 use super::{PyramidCache, TrainError};
 use crate::data::Sample;
+use crate::eval::median;
 use crate::model::{BoxCorrection, Model};
 use crate::vision::detect::{box_iou, DetectParams, Detector};
 
@@ -84,16 +85,6 @@ pub fn offset(window: (f64, f64, f64, f64), truth: (f64, f64, f64, f64)) -> Offs
         (tw / w).ln(),
         (th / h).ln(),
     ]
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
 }
 
 /// The correction of `offsets` (medians, clamped to

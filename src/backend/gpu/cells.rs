@@ -361,10 +361,6 @@ impl Context {
                 descs.push(d);
             }
         }
-        let nl = to_u32(descs.len(), "levels")?;
-        if nl > MAX_GROUPS {
-            return Err(GpuError::TooLarge(format!("{nl} levels in one batch")));
-        }
         // Each step's descriptor at an offset the device can bind.
         let align = (self.device.limits().min_storage_buffer_offset_alignment as usize)
             .max(LAYER_WORDS * 4);
@@ -386,25 +382,11 @@ impl Context {
         let d_buf = self.scratch("cnn depthwise", sizes.depthwise * 4)?;
         let cells_buf = self.scratch("cnn cells", cells_n * 4)?;
         let staging = self.readback(cells_n)?;
+        let resize = self.resize_dispatch(
+            &descs,
+            [&levels_buf, &taps_buf, &src_buf, &tmp_buf, &img_buf],
+        )?;
         let k = &self.kernels;
-        let bg_rh = self.bind(
-            &k.resize_h,
-            &[
-                (0, &levels_buf),
-                (1, &taps_buf),
-                (2, &src_buf),
-                (3, &tmp_buf),
-            ],
-        );
-        let bg_rv = self.bind(
-            &k.resize_v,
-            &[
-                (0, &levels_buf),
-                (1, &taps_buf),
-                (3, &tmp_buf),
-                (4, &img_buf),
-            ],
-        );
         let slot = |s: Slot| match s {
             Slot::Image => &img_buf,
             Slot::A => &a_buf,
@@ -457,22 +439,12 @@ impl Context {
             });
             bound.push((pipeline, bg, s.groups));
         }
-        let max = |f: fn(&LevelDesc) -> u32| descs.iter().map(f).max().unwrap_or(1) as usize;
-        let (gw, gsh) = (groups(max(|d| d.dst_w), 8)?, groups(max(|d| d.src_h), 8)?);
-        let gh = groups(max(|d| d.dst_h), 8)?;
         let record = |enc: &mut wgpu::CommandEncoder| {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("learned cells"),
                 timestamp_writes: None,
             });
-            for (p, bg, (x, y)) in [
-                (&k.resize_h, &bg_rh, (gw, gsh)),
-                (&k.resize_v, &bg_rv, (gw, gh)),
-            ] {
-                pass.set_pipeline(p);
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(x, y, nl);
-            }
+            resize.record(k, &mut pass);
             for (p, bg, (x, y, z)) in &bound {
                 pass.set_pipeline(p);
                 pass.set_bind_group(0, bg, &[]);

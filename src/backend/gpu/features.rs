@@ -66,6 +66,35 @@ pub(super) fn push_taps(taps: &mut Vec<u32>, table: &[Vec<(usize, f32)>]) -> Res
     Ok(off)
 }
 
+/// The two passes of the resize (`kernels/resize_area.wgsl`) over every
+/// level of a batch, bound and sized: the HOG path and the learned cells'
+/// both start with it.
+pub(super) struct ResizeDispatch {
+    horizontal: wgpu::BindGroup,
+    vertical: wgpu::BindGroup,
+    /// Levels (workgroups along z).
+    pub(super) levels: u32,
+    /// Workgroups along the widest level and the tallest level (and the
+    /// tallest source image, which the horizontal pass covers).
+    pub(super) gw: u32,
+    pub(super) gh: u32,
+    gsh: u32,
+}
+
+impl ResizeDispatch {
+    /// Records both passes.
+    pub(super) fn record(&self, k: &Kernels, pass: &mut wgpu::ComputePass<'_>) {
+        for (p, bg, y) in [
+            (&k.resize_h, &self.horizontal, self.gsh),
+            (&k.resize_v, &self.vertical, self.gh),
+        ] {
+            pass.set_pipeline(p);
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(self.gw, y, self.levels);
+        }
+    }
+}
+
 /// The HOG maps (and optionally the resized images) of every level of every
 /// (image, setting) pair, in the order asked.
 pub(super) struct Features {
@@ -74,6 +103,29 @@ pub(super) struct Features {
 }
 
 impl Context {
+    /// The resize of every level of `descs` from the images in `src` into
+    /// `dst` (through `tmp`), with the tap tables in `taps`.
+    pub(super) fn resize_dispatch(
+        &self,
+        descs: &[LevelDesc],
+        [levels, taps, src, tmp, dst]: [&wgpu::Buffer; 5],
+    ) -> Result<ResizeDispatch, GpuError> {
+        let nl = to_u32(descs.len(), "levels")?;
+        if nl > MAX_GROUPS {
+            return Err(GpuError::TooLarge(format!("{nl} levels in one batch")));
+        }
+        let max = |f: fn(&LevelDesc) -> u32| descs.iter().map(f).max().unwrap_or(1) as usize;
+        let k = &self.kernels;
+        Ok(ResizeDispatch {
+            horizontal: self.bind(&k.resize_h, &[(0, levels), (1, taps), (2, src), (3, tmp)]),
+            vertical: self.bind(&k.resize_v, &[(0, levels), (1, taps), (3, tmp), (4, dst)]),
+            levels: nl,
+            gw: groups(max(|d| d.dst_w), 8)?,
+            gh: groups(max(|d| d.dst_h), 8)?,
+            gsh: groups(max(|d| d.src_h), 8)?,
+        })
+    }
+
     /// HOG maps of every level of every `(image, pyramid settings)` pair in
     /// one submission; with `images`, also the resized level images.
     pub(super) fn features(
@@ -144,25 +196,11 @@ impl Context {
         let hist_buf = self.scratch("histograms", hist_n * 4)?;
         let hog_buf = self.scratch("features", hog_n * 4)?;
         let staging = self.readback(hog_n + if images { dst_n } else { 0 })?;
+        let resize = self.resize_dispatch(
+            &descs,
+            [&levels_buf, &taps_buf, &src_buf, &tmp_buf, &dst_buf],
+        )?;
         let k = &self.kernels;
-        let bg_rh = self.bind(
-            &k.resize_h,
-            &[
-                (0, &levels_buf),
-                (1, &taps_buf),
-                (2, &src_buf),
-                (3, &tmp_buf),
-            ],
-        );
-        let bg_rv = self.bind(
-            &k.resize_v,
-            &[
-                (0, &levels_buf),
-                (1, &taps_buf),
-                (3, &tmp_buf),
-                (4, &dst_buf),
-            ],
-        );
         let bg_g = self.bind(
             &k.gradient,
             &[(0, &levels_buf), (1, &dst_buf), (2, &grad_buf)],
@@ -176,16 +214,9 @@ impl Context {
             &[(0, &levels_buf), (3, &hist_buf), (4, &hog_buf)],
         );
         let max = |f: fn(&LevelDesc) -> u32| descs.iter().map(f).max().unwrap_or(1) as usize;
-        let nl = to_u32(descs.len(), "levels")?;
-        if nl > MAX_GROUPS {
-            return Err(GpuError::TooLarge(format!("{nl} levels in one batch")));
-        }
-        let (gw, gsh) = (groups(max(|d| d.dst_w), 8)?, groups(max(|d| d.src_h), 8)?);
-        let gh = groups(max(|d| d.dst_h), 8)?;
+        let (nl, gw, gh) = (resize.levels, resize.gw, resize.gh);
         let (gcw, gch) = (groups(max(|d| d.cw), 8)?, groups(max(|d| d.ch), 8)?);
         let pipes = [
-            (&k.resize_h, &bg_rh, (gw, gsh)),
-            (&k.resize_v, &bg_rv, (gw, gh)),
             (&k.gradient, &bg_g, (gw, gh)),
             (&k.histogram, &bg_h, (gcw, gch)),
             (&k.normalise, &bg_n, (gcw, gch)),
@@ -195,6 +226,7 @@ impl Context {
                 label: Some("pyramid"),
                 timestamp_writes: None,
             });
+            resize.record(k, &mut pass);
             for (p, bg, (x, y)) in pipes {
                 pass.set_pipeline(p);
                 pass.set_bind_group(0, bg, &[]);
