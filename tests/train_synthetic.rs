@@ -370,3 +370,201 @@ fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
         }
     }
 }
+
+/// Background examples (`--background-regions`): with no negative image at
+/// all, each positive scene's own clutter, searched region by region away
+/// from the object, is what teaches the model to score background low.
+/// The searches of those examples never return a window overlapping the
+/// object or centred outside their region; the model finds held-out
+/// objects and scores the training scenes' clutter below their objects.
+#[test]
+fn background_regions_train_from_positive_scenes_alone() {
+    use sdhop::train::loss::{Background, BackgroundLoss};
+    use sdhop::vision::detect::{DetectParams, Detector};
+    let params = TrainParams {
+        template_scale: 1.0,
+        max_passes: 6,
+        init_locations: 20,
+        background_regions: 4,
+        ..TrainParams::default()
+    };
+    let cache = PyramidCache::default();
+    let made: Vec<(Sample, Scene)> = (0..10)
+        .map(|seed| make_sample(&cache, &params, &OBJECT, 300 + seed, Some("thing")))
+        .collect();
+    let samples: Vec<Sample> = made.iter().map(|(s, _)| s.clone()).collect();
+    let refs: Vec<&Sample> = samples.iter().collect();
+    let pb = indicatif::ProgressBar::hidden();
+    let (model, report) = train_model("thing", &refs, &cache, &params, &pb).unwrap();
+    assert_eq!(report.background_negatives, 10 * 4);
+    assert_eq!(report.negatives, 10 * 4);
+
+    // The loss-augmented search of a background example stays in its part
+    // of the photograph, though the object outscores everything there.
+    let det = Detector::new(&model.views).unwrap();
+    let mut below = 0;
+    for (s, sc) in &made {
+        let pyr = cache.get(&s.image).unwrap();
+        let (w, h) = (pyr.image_width as f64, pyr.image_height as f64);
+        let mut best_background = f64::NEG_INFINITY;
+        for bg in Background::regions(4, w, h, &[sc.truth_box]) {
+            let aug = BackgroundLoss { background: &bg };
+            let (found, _, _) = det
+                .most_violated(&pyr, &aug, f64::NEG_INFINITY, 0.5, None)
+                .unwrap();
+            if let Some(f) = found {
+                let b = det.grid(&pyr, &f.location).pixel_box();
+                assert!(bg.contains(b), "{b:?} outside {:?}", bg.region);
+                assert!(box_iou(b, sc.truth_box) < 0.3);
+                // Value = loss 1 + score.
+                best_background = best_background.max(f.value - 1.0);
+            }
+        }
+        let dp = DetectParams {
+            threshold: f64::NEG_INFINITY,
+            max_detections: 1,
+            ..model.meta.detection
+        };
+        let (top, _) = det.detect(&pyr, &dp).unwrap();
+        let object = top
+            .first()
+            .filter(|d| box_iou(d.bbox, sc.truth_box) >= 0.5)
+            .map_or(f64::NEG_INFINITY, |d| d.score);
+        if best_background < object {
+            below += 1;
+        }
+    }
+    assert!(
+        below >= 9,
+        "clutter below the object in {below} of 10 scenes"
+    );
+
+    let opts = DetectOptions {
+        threshold: Some(-1e9),
+        max_detections: Some(1),
+        ..DetectOptions::default()
+    };
+    let n = 8u64;
+    let hits = (0..n)
+        .filter(|seed| {
+            let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
+            let resp = detect_image(&sc.image, &[&model], &opts).unwrap();
+            resp.detections.first().is_some_and(|d| {
+                box_iou(
+                    (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                    sc.truth_box,
+                ) >= 0.5
+            })
+        })
+        .count() as u64;
+    assert!(hits >= n - 1, "{hits}/{n} held-out objects found");
+}
+
+/// `train --coco` from box-only photographs, end to end through the
+/// binary: by default each photograph also trains as four background
+/// examples, unmirrored; `--mirror-photos true` adds mirrored photographs,
+/// `--background-regions 0` turns the background examples off (both
+/// recorded in the model's provenance). Every model finds held-out
+/// objects.
+#[test]
+fn coco_box_only_training_with_background_regions_and_mirrored_photographs() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-coco-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut images = Vec::new();
+    let mut annotations = Vec::new();
+    for seed in 0..8u64 {
+        let sc = scene(&OBJECT, &scene_params(500 + seed)).unwrap();
+        let name = format!("{seed}.png");
+        sc.image.to_rgb8().save(dir.join(&name)).unwrap();
+        images.push(serde_json::json!({"id": seed, "file_name": name,
+            "width": sc.image.width(), "height": sc.image.height()}));
+        let (x, y, w, h) = sc.truth_box;
+        annotations.push(
+            serde_json::json!({"id": seed, "image_id": seed, "category_id": 1,
+            "bbox": [x, y, w, h], "area": w * h, "iscrowd": 0}),
+        );
+    }
+    let coco = serde_json::json!({"images": images, "annotations": annotations,
+        "categories": [{"id": 1, "name": "thing"}]});
+    let json = dir.join("boxes.json");
+    std::fs::write(&json, coco.to_string()).unwrap();
+    let train = |out: &str, extra: &[&str]| -> Model {
+        let out = dir.join(out);
+        let mut args = vec![
+            "train",
+            "--coco",
+            json.to_str().unwrap(),
+            "--images",
+            dir.to_str().unwrap(),
+            "--category",
+            "thing",
+            "--features",
+            "hog",
+            "--max-passes",
+            "3",
+            "--box-folds",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        let run = std::process::Command::new(bin)
+            .args(&args)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        Model::from_bytes(&std::fs::read(out.join("thing.safetensors")).unwrap()).unwrap()
+    };
+    let found = |model: &Model| {
+        let opts = DetectOptions {
+            threshold: Some(-1e9),
+            max_detections: Some(1),
+            ..DetectOptions::default()
+        };
+        (0..8u64)
+            .filter(|seed| {
+                let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
+                let resp = detect_image(&sc.image, &[model], &opts).unwrap();
+                resp.detections.first().is_some_and(|d| {
+                    box_iou(
+                        (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                        sc.truth_box,
+                    ) >= 0.5
+                })
+            })
+            .count()
+    };
+    let default = train("default", &[]);
+    let p = &default.meta.provenance;
+    assert_eq!(p["mirror_photos"], serde_json::json!(false), "{p}");
+    assert_eq!(
+        p["params"]["background_regions"],
+        serde_json::json!(4),
+        "{p}"
+    );
+    let mirrored = train("mirrored", &["--mirror-photos", "true"]);
+    let p = &mirrored.meta.provenance;
+    assert_eq!(p["mirror_photos"], serde_json::json!(true), "{p}");
+    // Twice the box photographs: each and its mirror image.
+    let boxes = |p: &serde_json::Value| p["multiview"]["box_photographs"].as_u64();
+    assert_eq!(boxes(&default.meta.provenance), Some(8));
+    assert_eq!(boxes(p), Some(16));
+    let plain = train("plain", &["--background-regions", "0"]);
+    let p = &plain.meta.provenance;
+    assert_eq!(
+        p["params"]["background_regions"],
+        serde_json::json!(0),
+        "{p}"
+    );
+    let (a, m, b) = (found(&default), found(&mirrored), found(&plain));
+    assert!(
+        a >= 6 && m >= 6 && b >= 5,
+        "held-out objects found: default {a}/8, mirrored {m}/8, plain {b}/8"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

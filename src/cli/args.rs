@@ -11,7 +11,7 @@ pub(crate) struct TrainSettings {
     /// the docs: c, k, template_scale, template, pyramid, segmentation,
     /// max_truncation, epsilon, max_passes, max_inner, init_locations,
     /// mining_passes, mining_budget, cache_size, positive_share, loss, seg_weight, hop,
-    /// pairwise, occlusion, pair_mode, seed, threshold).
+    /// pairwise, occlusion, pair_mode, seed, background_regions, threshold).
     #[arg(long)]
     pub(crate) config: Option<PathBuf>,
     /// Regularisation constant C.
@@ -67,6 +67,11 @@ pub(crate) struct TrainSettings {
     /// Random seed (initial locations).
     #[arg(long)]
     pub(crate) seed: Option<u64>,
+    /// Each positive photograph also trains as this many negative examples,
+    /// one per region of a grid over it, away from its instances (its own
+    /// clutter as hard negatives; 0: none). See docs/training.md.
+    #[arg(long)]
+    pub(crate) background_regions: Option<usize>,
     /// Loss: sd-hop (eq. 3) or gao (ablation).
     #[arg(long, value_enum)]
     pub(crate) loss: Option<LossKind>,
@@ -174,6 +179,9 @@ impl TrainSettings {
         }
         if let Some(v) = self.seed {
             p.seed = v;
+        }
+        if let Some(v) = self.background_regions {
+            p.background_regions = v;
         }
         if let Some(v) = self.loss {
             p.loss = v;

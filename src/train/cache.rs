@@ -32,7 +32,9 @@ impl PyramidCache {
         }
     }
 
-    /// Computes the missing pyramids in parallel.
+    /// Computes the missing pyramids in parallel: those of images not in
+    /// the cache, and those built with other settings (several objects of
+    /// one run may each have their own scales), which are replaced.
     pub fn fill(
         &self,
         samples: &[&Sample],
@@ -49,7 +51,12 @@ impl PyramidCache {
             samples
                 .iter()
                 .map(|s| &s.image)
-                .filter(|p| !map.contains_key(*p) && seen.insert(*p))
+                .filter(|p| {
+                    let fits = map
+                        .get(*p)
+                        .is_some_and(|pyr| pyr.params == *pyramid && pyr.seg_params == *seg);
+                    !fits && seen.insert(*p)
+                })
                 .collect()
         };
         progress.set_length(missing.len() as u64);

@@ -171,6 +171,102 @@ impl LossAugment for TruthLoss<'_> {
     }
 }
 
+/// Largest overlap (IoU) with an instance of the object that a window of
+/// a background example may have: windows overlapping more are neither
+/// the object nor background, and are left out.
+pub const BACKGROUND_MAX_IOU: f64 = 0.3;
+
+/// The loss of a background example ([`Background`]): every output is a
+/// false positive (loss 1, as on a negative image), and only windows
+/// centred in the example's region and away from the photograph's
+/// instances are searched.
+pub struct BackgroundLoss<'a> {
+    pub background: &'a Background,
+}
+
+/// A part of a positive photograph away from its instances, searched as a
+/// negative image: windows whose centre lies in `region` (`x0, y0, x1, y1`
+/// in pixels) and that overlap every box of `instances` by less than
+/// [`BACKGROUND_MAX_IOU`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct Background {
+    pub region: (f64, f64, f64, f64),
+    pub instances: Vec<(f64, f64, f64, f64)>,
+}
+
+impl Background {
+    /// The `n` regions of a `width x height` photograph (a grid of
+    /// `ceil(sqrt n)` columns and as many rows as `n` needs), each with the
+    /// same instances.
+    pub fn regions(
+        n: usize,
+        width: f64,
+        height: f64,
+        instances: &[(f64, f64, f64, f64)],
+    ) -> Vec<Background> {
+        if n == 0 {
+            return Vec::new();
+        }
+        let cols = (n as f64).sqrt().ceil() as usize;
+        let rows = n.div_ceil(cols);
+        let mut out = Vec::with_capacity(rows * cols);
+        for r in 0..rows {
+            for c in 0..cols {
+                // The outer edges reach past the photograph: a window of a
+                // truncated object may have its centre outside it.
+                let edge = |i: usize, k: usize, len: f64| {
+                    if i == 0 {
+                        f64::NEG_INFINITY
+                    } else if i == k {
+                        f64::INFINITY
+                    } else {
+                        len * i as f64 / k as f64
+                    }
+                };
+                out.push(Background {
+                    region: (
+                        edge(c, cols, width),
+                        edge(r, rows, height),
+                        edge(c + 1, cols, width),
+                        edge(r + 1, rows, height),
+                    ),
+                    instances: instances.to_vec(),
+                });
+            }
+        }
+        out
+    }
+
+    /// Whether the window `bbox` (`x, y, width, height`) belongs to this
+    /// example.
+    pub fn contains(&self, bbox: (f64, f64, f64, f64)) -> bool {
+        let (cx, cy) = (bbox.0 + 0.5 * bbox.2, bbox.1 + 0.5 * bbox.3);
+        let (x0, y0, x1, y1) = self.region;
+        cx >= x0
+            && cx < x1
+            && cy >= y0
+            && cy < y1
+            && self
+                .instances
+                .iter()
+                .all(|&b| box_iou(b, bbox) < BACKGROUND_MAX_IOU)
+    }
+}
+
+impl LossAugment for BackgroundLoss<'_> {
+    fn max_loss(&self) -> f64 {
+        1.0
+    }
+
+    fn augment(&self, _view: usize, _grid: &CellGrid, problem: &mut BoxProblem) {
+        problem.constant -= 1.0;
+    }
+
+    fn excludes(&self, _view: usize, grid: &CellGrid) -> bool {
+        !self.background.contains(grid.pixel_box())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -269,6 +365,46 @@ mod tests {
 
     /// `E(v) - Delta(v)` equals the augmented problem's energy for every
     /// labelling of small boxes at several scales, for both losses.
+    #[test]
+    fn background_regions_tile_the_photograph_away_from_its_instances() {
+        let object = (40.0, 30.0, 20.0, 20.0);
+        for n in [1, 2, 3, 4, 9] {
+            let regions = Background::regions(n, 100.0, 80.0, &[object]);
+            assert!(regions.len() >= n, "{n}: {}", regions.len());
+            // Every window away from the object (centres inside the
+            // photograph or past its border) is in exactly one region.
+            for (cx, cy) in [
+                (5.0, 5.0),
+                (95.0, 75.0),
+                (-3.0, 40.0),
+                (50.0, 90.0),
+                (10.0, 60.0),
+            ] {
+                let w = (cx - 5.0, cy - 5.0, 10.0, 10.0);
+                let n_in = regions.iter().filter(|r| r.contains(w)).count();
+                assert_eq!(n_in, 1, "{n} regions, window at ({cx}, {cy})");
+            }
+            // The object and windows overlapping it by IoU 0.3 or more are
+            // in none.
+            for w in [object, (42.0, 30.0, 20.0, 20.0), (35.0, 25.0, 28.0, 28.0)] {
+                assert!(regions.iter().all(|r| !r.contains(w)), "{w:?}");
+            }
+        }
+        assert!(Background::regions(0, 100.0, 80.0, &[object]).is_empty());
+        // The loss: 1 for every output searched, none searched in the
+        // object.
+        let bg = &Background::regions(1, 100.0, 80.0, &[object])[0];
+        let aug = BackgroundLoss { background: bg };
+        let g = grid(5, 3, 2, 2, 10.0);
+        let mut problem = BoxProblem::default();
+        aug.augment(0, &g, &mut problem);
+        assert_eq!(problem.constant, -1.0);
+        assert_eq!(aug.max_loss(), 1.0);
+        assert!(!aug.excludes(0, &g));
+        // Cells of 10 px: exactly the object's box.
+        assert!(aug.excludes(0, &grid(4, 3, 2, 2, 0.8)));
+    }
+
     #[test]
     fn decomposition_equals_the_direct_loss_for_every_labelling() {
         let mut rng = SplitMix64::new(5);

@@ -26,12 +26,14 @@ pub mod latent;
 pub mod layout;
 pub mod loss;
 pub mod mesh;
+pub mod mirror;
 pub mod multiview;
 pub mod qp;
 mod search;
 pub mod views;
 
 use std::collections::HashMap;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -53,7 +55,7 @@ use crate::vision::segment::SegmentParams;
 use crate::vision::shape::{learn_colours, ShapeModel};
 use crate::vision::VisionError;
 
-use loss::{cell_truth, IntegralMask, LossKind};
+use loss::{cell_truth, Background, IntegralMask, LossKind};
 use qp::{Plane, WorkingSet};
 
 pub use cache::PyramidCache;
@@ -78,6 +80,10 @@ pub enum TrainError {
         source: std::io::Error,
     },
 }
+
+/// Most background regions per positive photograph
+/// ([`TrainParams::background_regions`]).
+pub const MAX_BACKGROUND_REGIONS: usize = 16;
 
 /// Every setting of training; saved in the model's provenance.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -140,6 +146,13 @@ pub struct TrainParams {
     /// ablation).
     pub pair_mode: PairwiseMode,
     pub seed: u64,
+    /// Each positive photograph also serves as this many negative examples,
+    /// one per region of a grid over it (windows centred in the region,
+    /// overlapping none of the photograph's instances by IoU 0.3 or more;
+    /// [`loss::Background`]): the photograph's own clutter as hard
+    /// negatives, where the 1-slack loss of the positive itself weighs only
+    /// its single most violated window. 0: none.
+    pub background_regions: usize,
     /// Detection threshold saved in the model (score units; the SVM margin
     /// puts positives at >= 1 and negatives at <= -1). The default, -0.75,
     /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
@@ -175,6 +188,7 @@ impl Default for TrainParams {
             occlusion: true,
             pair_mode: PairwiseMode::Grid,
             seed: 1,
+            background_regions: 0,
             threshold: -0.75,
         }
     }
@@ -214,6 +228,12 @@ impl TrainParams {
         if !(0.0..1.0).contains(&self.max_truncation) || !self.threshold.is_finite() {
             return bad("max_truncation must be in [0, 1) and the threshold finite".into());
         }
+        if self.background_regions > MAX_BACKGROUND_REGIONS {
+            return bad(format!(
+                "background_regions must be at most {MAX_BACKGROUND_REGIONS}, got {}",
+                self.background_regions
+            ));
+        }
         self.pyramid.validate()?;
         self.segmentation.validate()?;
         Ok(())
@@ -228,6 +248,9 @@ struct Example {
     truth: Option<GroundTruth>,
     /// Locations found by earlier searches (and the seeds).
     cache: Vec<Location>,
+    /// A part of a positive photograph searched as a negative image
+    /// ([`TrainParams::background_regions`]).
+    background: Option<Background>,
 }
 
 struct GroundTruth {
@@ -287,6 +310,8 @@ pub struct TrainReport {
     pub qp_seconds: f64,
     pub positives: usize,
     pub negatives: usize,
+    /// Of the negatives, the background examples of positive photographs.
+    pub background_negatives: usize,
     pub skipped: Vec<String>,
 }
 
@@ -375,10 +400,26 @@ pub fn train_joint(
     let det0 = Detector::new(&zero)?;
     let mut rng = SplitMix64::new(params.seed);
     let pos_w = params.positive_share / positives.len() as f64;
-    let neg_w = if negatives.is_empty() {
+    // Each positive photograph's background examples (once per image,
+    // away from all its instances of the labels).
+    type PixelBox = (f64, f64, f64, f64);
+    let mut backgrounds: Vec<(&PathBuf, Vec<PixelBox>)> = Vec::new();
+    if params.background_regions > 0 {
+        for s in &positives {
+            let Some(a) = s.annotation.as_ref() else {
+                continue;
+            };
+            match backgrounds.iter_mut().find(|(p, _)| *p == &s.image) {
+                Some((_, boxes)) => boxes.push(a.bbox),
+                None => backgrounds.push((&s.image, vec![a.bbox])),
+            }
+        }
+    }
+    let n_background = backgrounds.len() * params.background_regions;
+    let neg_w = if negatives.is_empty() && n_background == 0 {
         0.0
     } else {
-        (1.0 - params.positive_share) / negatives.len() as f64
+        (1.0 - params.positive_share) / (negatives.len() + n_background) as f64
     };
     let mut examples: Vec<Example> = Vec::new();
     // Whether each example is a box-only positive.
@@ -465,8 +506,42 @@ pub fn train_joint(
             weight,
             truth,
             cache: seeds,
+            background: None,
         });
     }
+    for (image, instances) in &backgrounds {
+        let pyr = cache
+            .get(image)
+            .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", image.display())))?;
+        let locs = det0.locations(&pyr, params.max_truncation);
+        let regions = Background::regions(
+            params.background_regions,
+            pyr.image_width as f64,
+            pyr.image_height as f64,
+            instances,
+        );
+        for bg in regions.into_iter().take(params.background_regions) {
+            let mut seeds = Vec::new();
+            for _ in 0..params.init_locations * 4 {
+                if seeds.len() >= params.init_locations || locs.is_empty() {
+                    break;
+                }
+                let l = locs[rng.range_usize(0, locs.len())];
+                if bg.contains(det0.grid(&pyr, &l).pixel_box()) {
+                    seeds.push(l);
+                }
+            }
+            box_only.push(false);
+            examples.push(Example {
+                pyr: pyr.clone(),
+                weight: neg_w,
+                truth: None,
+                cache: seeds,
+                background: Some(bg),
+            });
+        }
+    }
+    report.background_negatives = examples.iter().filter(|e| e.background.is_some()).count();
     report.positives = examples.iter().filter(|e| e.truth.is_some()).count();
     report.negatives = examples.len() - report.positives;
     if report.positives == 0 {

@@ -6,10 +6,10 @@
 use rayon::prelude::*;
 
 use super::layout::Layout;
-use super::loss::{Truth, TruthLoss};
+use super::loss::{BackgroundLoss, Truth, TruthLoss};
 use super::qp::Plane;
 use super::{Example, Found, Round, TrainError, TrainParams};
-use crate::vision::detect::Detector;
+use crate::vision::detect::{Detector, LossAugment};
 use crate::vision::energy::joint_feature;
 
 /// One cutting-plane round: the most violated output of every example (over
@@ -25,7 +25,7 @@ pub(super) fn search(
     let results: Vec<Result<Found, TrainError>> = examples
         .par_iter()
         .map(|ex| {
-            let aug = TruthLoss {
+            let truth_loss = TruthLoss {
                 truth: ex.truth.as_ref().map(|t| Truth {
                     bbox: t.bbox,
                     visible: &t.visible,
@@ -41,17 +41,25 @@ pub(super) fn search(
                     .as_ref()
                     .and_then(|t| t.views.as_deref().map(Vec::as_slice)),
             };
+            let background = ex
+                .background
+                .as_ref()
+                .map(|b| BackgroundLoss { background: b });
+            let aug: &dyn LossAugment = match &background {
+                Some(b) => b,
+                None => &truth_loss,
+            };
             // The empty output: loss 1 on a positive, 0 on a negative.
             let floor = if ex.truth.is_some() { 1.0 } else { 0.0 };
             // The cached locations first: their best value is a tight
             // cut-off for the exact search over everything.
-            let cached = det.most_violated_among(&ex.pyr, &ex.cache, &aug, floor);
+            let cached = det.most_violated_among(&ex.pyr, &ex.cache, aug, floor);
             let mut cuts = 0;
             let mut extra = Vec::new();
             let best = if full {
                 let start = cached.as_ref().map_or(floor, |b| b.value);
                 let (found, others, stats) =
-                    det.most_violated(&ex.pyr, &aug, start, params.max_truncation, budget)?;
+                    det.most_violated(&ex.pyr, aug, start, params.max_truncation, budget)?;
                 cuts = stats.min_cuts;
                 extra = others;
                 found.filter(|f| f.value > start).or(cached)
@@ -72,7 +80,11 @@ pub(super) fn search(
                         params.pairwise,
                     );
                     let grid = det.grid(&ex.pyr, &b.location);
-                    (aug.loss(b.location.view, &grid, &b.cells), Some(b.location))
+                    let loss = match &background {
+                        Some(_) => 1.0,
+                        None => truth_loss.loss(b.location.view, &grid, &b.cells),
+                    };
+                    (loss, Some(b.location))
                 }
                 None => (floor, None),
             };

@@ -72,6 +72,22 @@ impl ColorImage {
         &self.data
     }
 
+    /// The image mirrored left to right.
+    pub fn mirrored(&self) -> Self {
+        let row = self.width * CHANNELS;
+        let mut data = Vec::with_capacity(self.data.len());
+        for line in self.data.chunks_exact(row) {
+            for px in line.chunks_exact(CHANNELS).rev() {
+                data.extend_from_slice(px);
+            }
+        }
+        Self {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
     /// The sample of channel `c` at `(x, y)`.
     #[inline]
     pub fn get(&self, x: usize, y: usize, c: usize) -> f32 {
@@ -292,6 +308,21 @@ pub(crate) fn noise_image(w: usize, h: usize, seed: u64) -> ColorImage {
 #[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn mirroring_reverses_every_row_and_twice_is_the_identity() {
+        let data: Vec<f32> = (0..2 * 3 * CHANNELS).map(|v| v as f32).collect();
+        let img = ColorImage::new(3, 2, data).unwrap();
+        let m = img.mirrored();
+        for y in 0..2 {
+            for x in 0..3 {
+                for c in 0..CHANNELS {
+                    assert_eq!(m.get(x, y, c), img.get(2 - x, y, c));
+                }
+            }
+        }
+        assert_eq!(m.mirrored(), img);
+    }
 
     fn ramp(w: usize, h: usize) -> ColorImage {
         let mut d = Vec::new();

@@ -31,6 +31,19 @@ impl Mask {
         self.data[y * self.width + x] = u8::from(v);
     }
 
+    /// The mask mirrored left to right.
+    pub fn mirrored(&self) -> Self {
+        let mut data = Vec::with_capacity(self.data.len());
+        for line in self.data.chunks_exact(self.width.max(1)) {
+            data.extend(line.iter().rev());
+        }
+        Self {
+            width: self.width,
+            height: self.height,
+            data,
+        }
+    }
+
     pub fn area(&self) -> usize {
         self.data.iter().filter(|&&v| v != 0).count()
     }

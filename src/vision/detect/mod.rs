@@ -231,6 +231,11 @@ pub trait LossAugment: Sync {
     /// Subtracts the loss of the box at `grid` of viewpoint component
     /// `view` from `problem`'s energy.
     fn augment(&self, view: usize, grid: &CellGrid, problem: &mut BoxProblem);
+    /// Whether the output at `grid` of component `view` is left out of the
+    /// search altogether (never an output of this example).
+    fn excludes(&self, _view: usize, _grid: &CellGrid) -> bool {
+        false
+    }
 }
 
 /// The output of loss-augmented inference at one location.
@@ -440,6 +445,9 @@ impl<'a> Detector<'a> {
         let mut best: Option<Augmented> = None;
         let mut cut = -floor;
         for loc in locations {
+            if aug.excludes(loc.view, &self.grid(pyr, loc)) {
+                continue;
+            }
             let cand = Candidate {
                 view: loc.view,
                 level: loc.level,
@@ -576,6 +584,9 @@ impl<'a> Detector<'a> {
                     cands.push(c);
                 }
             }
+        }
+        if let Some(a) = aug {
+            cands.retain(|c| !a.excludes(c.view, &self.grid(pyr, &c.location())));
         }
         stats.pruned_stage1 = stats.locations.saturating_sub(cands.len());
         stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
