@@ -58,6 +58,28 @@ fn make_sample(
     (sample, sc)
 }
 
+/// Of `n` held-out scenes, those whose top detection by `model` (whatever
+/// its score) finds the object's box (IoU at least 0.5).
+fn held_out_hits(model: &Model, n: u64) -> u64 {
+    let opts = DetectOptions {
+        threshold: Some(-1e9),
+        max_detections: Some(1),
+        ..DetectOptions::default()
+    };
+    (0..n)
+        .filter(|seed| {
+            let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
+            let resp = detect_image(&sc.image, &[model], &opts).unwrap();
+            resp.detections.first().is_some_and(|d| {
+                box_iou(
+                    (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                    sc.truth_box,
+                ) >= 0.5
+            })
+        })
+        .count() as u64
+}
+
 #[test]
 fn training_learns_to_detect_and_segment_held_out_scenes() {
     let params = TrainParams {
@@ -186,24 +208,8 @@ fn training_on_learned_cells_detects_held_out_scenes() {
     assert_eq!(model.meta.cells, FeatureKind::Cnn.fingerprint().unwrap());
     let loaded = Model::from_bytes(&model.to_bytes().unwrap()).unwrap();
     assert_eq!(loaded, model);
-    let opts = DetectOptions {
-        threshold: Some(-1e9),
-        max_detections: Some(1),
-        ..DetectOptions::default()
-    };
     let n = 8u64;
-    let hits = (0..n)
-        .filter(|seed| {
-            let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
-            let resp = detect_image(&sc.image, &[&loaded], &opts).unwrap();
-            resp.detections.first().is_some_and(|d| {
-                box_iou(
-                    (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
-                    sc.truth_box,
-                ) >= 0.5
-            })
-        })
-        .count() as u64;
+    let hits = held_out_hits(&loaded, n);
     eprintln!("learned cells, held-out: {hits}/{n} boxes");
     assert!(hits >= n - 2, "{hits}/{n} boxes found");
 }
@@ -439,24 +445,8 @@ fn background_regions_train_from_positive_scenes_alone() {
         "clutter below the object in {below} of 10 scenes"
     );
 
-    let opts = DetectOptions {
-        threshold: Some(-1e9),
-        max_detections: Some(1),
-        ..DetectOptions::default()
-    };
     let n = 8u64;
-    let hits = (0..n)
-        .filter(|seed| {
-            let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
-            let resp = detect_image(&sc.image, &[&model], &opts).unwrap();
-            resp.detections.first().is_some_and(|d| {
-                box_iou(
-                    (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
-                    sc.truth_box,
-                ) >= 0.5
-            })
-        })
-        .count() as u64;
+    let hits = held_out_hits(&model, n);
     assert!(hits >= n - 1, "{hits}/{n} held-out objects found");
 }
 
@@ -520,25 +510,7 @@ fn coco_box_only_training_with_background_regions_and_mirrored_photographs() {
         );
         Model::from_bytes(&std::fs::read(out.join("thing.safetensors")).unwrap()).unwrap()
     };
-    let found = |model: &Model| {
-        let opts = DetectOptions {
-            threshold: Some(-1e9),
-            max_detections: Some(1),
-            ..DetectOptions::default()
-        };
-        (0..8u64)
-            .filter(|seed| {
-                let sc = scene(&OBJECT, &scene_params(900 + seed)).unwrap();
-                let resp = detect_image(&sc.image, &[model], &opts).unwrap();
-                resp.detections.first().is_some_and(|d| {
-                    box_iou(
-                        (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
-                        sc.truth_box,
-                    ) >= 0.5
-                })
-            })
-            .count()
-    };
+    let found = |model: &Model| held_out_hits(model, 8);
     let default = train("default", &[]);
     let p = &default.meta.provenance;
     assert_eq!(p["mirror_photos"], serde_json::json!(false), "{p}");
