@@ -195,9 +195,9 @@ pub struct Background {
 }
 
 impl Background {
-    /// The `n` regions of a `width x height` photograph (a grid of
-    /// `ceil(sqrt n)` columns and as many rows as `n` needs), each with the
-    /// same instances.
+    /// The `n` regions of a `width x height` photograph (rows of
+    /// `ceil(sqrt n)` columns, as many as `n` needs, the last row split
+    /// into what is left), each with the same instances.
     pub fn regions(
         n: usize,
         width: f64,
@@ -209,8 +209,9 @@ impl Background {
         }
         let cols = (n as f64).sqrt().ceil() as usize;
         let rows = n.div_ceil(cols);
-        let mut out = Vec::with_capacity(rows * cols);
+        let mut out = Vec::with_capacity(n);
         for r in 0..rows {
+            let cols = if r + 1 == rows { n - cols * r } else { cols };
             for c in 0..cols {
                 // The outer edges reach past the photograph: a window of a
                 // truncated object may have its centre outside it.
@@ -370,7 +371,7 @@ mod tests {
         let object = (40.0, 30.0, 20.0, 20.0);
         for n in [1, 2, 3, 4, 9] {
             let regions = Background::regions(n, 100.0, 80.0, &[object]);
-            assert!(regions.len() >= n, "{n}: {}", regions.len());
+            assert_eq!(regions.len(), n);
             // Every window away from the object (centres inside the
             // photograph or past its border) is in exactly one region.
             for (cx, cy) in [

@@ -520,7 +520,7 @@ pub fn train_joint(
             pyr.image_height as f64,
             instances,
         );
-        for bg in regions.into_iter().take(params.background_regions) {
+        for bg in regions {
             let mut seeds = Vec::new();
             for _ in 0..params.init_locations * 4 {
                 if seeds.len() >= params.init_locations || locs.is_empty() {
