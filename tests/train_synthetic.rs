@@ -383,6 +383,27 @@ fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
 /// The searches of those examples never return a window overlapping the
 /// object or centred outside their region; the model finds held-out
 /// objects and scores the training scenes' clutter below their objects.
+/// A loss augmentation without its scan rectangle: the search scans every
+/// position and only then drops the excluded ones.
+struct Unrestricted<'a>(&'a dyn sdhop::vision::detect::LossAugment);
+
+impl sdhop::vision::detect::LossAugment for Unrestricted<'_> {
+    fn max_loss(&self) -> f64 {
+        self.0.max_loss()
+    }
+    fn augment(
+        &self,
+        view: usize,
+        grid: &sdhop::vision::mask::CellGrid,
+        problem: &mut sdhop::vision::energy::BoxProblem,
+    ) {
+        self.0.augment(view, grid, problem)
+    }
+    fn excludes(&self, view: usize, grid: &sdhop::vision::mask::CellGrid) -> bool {
+        self.0.excludes(view, grid)
+    }
+}
+
 #[test]
 fn background_regions_train_from_positive_scenes_alone() {
     use sdhop::train::loss::{Background, BackgroundLoss};
@@ -418,6 +439,15 @@ fn background_regions_train_from_positive_scenes_alone() {
             let (found, _, _) = det
                 .most_violated(&pyr, &aug, f64::NEG_INFINITY, 0.5, None)
                 .unwrap();
+            // Scanning only the positions near the region (`centres`)
+            // finds exactly what the whole scan, filtered, finds.
+            let (whole, _, _) = det
+                .most_violated(&pyr, &Unrestricted(&aug), f64::NEG_INFINITY, 0.5, None)
+                .unwrap();
+            assert_eq!(
+                found.as_ref().map(|f| (f.location, f.value.to_bits())),
+                whole.as_ref().map(|f| (f.location, f.value.to_bits()))
+            );
             if let Some(f) = found {
                 let b = det.grid(&pyr, &f.location).pixel_box();
                 assert!(bg.contains(b), "{b:?} outside {:?}", bg.region);
@@ -447,6 +477,54 @@ fn background_regions_train_from_positive_scenes_alone() {
 
     let n = 8u64;
     let hits = held_out_hits(&model, n);
+    assert!(hits >= n - 1, "{hits}/{n} held-out objects found");
+}
+
+/// A training on a cache an earlier training of the same object used
+/// starts from that training's hard locations in each example (latent
+/// rounds and cross-validation folds train again on the same images): it
+/// runs far fewer min-cuts, a fresh cache trains exactly as the first
+/// time, and the warm-started model finds held-out objects as well.
+#[test]
+fn a_second_training_starts_from_the_hard_locations_of_the_first() {
+    let params = TrainParams {
+        template_scale: 1.0,
+        max_passes: 6,
+        init_locations: 20,
+        background_regions: 4,
+        ..TrainParams::default()
+    };
+    let pb = indicatif::ProgressBar::hidden();
+    // The scenes' pyramids into `cache` (a pyramid put in anew forgets
+    // its hard locations).
+    let scenes = |cache: &PyramidCache| -> Vec<Sample> {
+        (0..8)
+            .map(|seed| make_sample(cache, &params, &OBJECT, 700 + seed, Some("thing")).0)
+            .chain((0..4).map(|seed| make_sample(cache, &params, &OBJECT, 800 + seed, None).0))
+            .collect()
+    };
+    let train = |cache: &PyramidCache, samples: &[Sample]| {
+        let refs: Vec<&Sample> = samples.iter().collect();
+        train_model("thing", &refs, cache, &params, &pb).unwrap()
+    };
+    let cache = PyramidCache::default();
+    let samples = scenes(&cache);
+    let (_, cold) = train(&cache, &samples);
+    let (warm_model, warm) = train(&cache, &samples);
+    let fresh_cache = PyramidCache::default();
+    let (_, fresh) = train(&fresh_cache, &scenes(&fresh_cache));
+    let cuts = |r: &sdhop::train::TrainReport| r.full_min_cuts.iter().sum::<usize>();
+    assert_eq!(cuts(&fresh), cuts(&cold));
+    assert_eq!(fresh.objective, cold.objective);
+    assert!(
+        2 * cuts(&warm) < cuts(&cold),
+        "warm start ran {} min-cuts, cold {}",
+        cuts(&warm),
+        cuts(&cold)
+    );
+    assert!(warm.converged);
+    let n = 8u64;
+    let hits = held_out_hits(&warm_model, n);
     assert!(hits >= n - 1, "{hits}/{n} held-out objects found");
 }
 

@@ -1,5 +1,7 @@
 //! The training images' feature pyramids, computed once per image and
-//! shared by every model trained in one run.
+//! shared by every model trained in one run, and the hard locations each
+//! training found in them (the seeds of the next training of the same
+//! object: latent rounds, cross-validation folds).
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -10,13 +12,27 @@ use rayon::prelude::*;
 
 use super::TrainError;
 use crate::data::{load_image, Sample};
+use crate::vision::detect::Location;
 use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
 use crate::vision::segment::SegmentParams;
+
+/// Which training example hard locations belong to: an image, the
+/// background region of it searched as a negative (`None`: the whole
+/// image), and the object (or joined objects) trained.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub(super) struct HardKey {
+    pub image: PathBuf,
+    pub region: Option<usize>,
+    pub label: String,
+}
 
 /// A pyramid per image path, computed once and shared by every model.
 #[derive(Default)]
 pub struct PyramidCache {
     map: std::sync::Mutex<HashMap<PathBuf, Arc<FeaturePyramid>>>,
+    /// The locations each example's last training ended with (its most
+    /// violated outputs), by example.
+    hard: std::sync::Mutex<HashMap<HardKey, Vec<Location>>>,
     /// Keep [`FeaturePyramid::lean`] pyramids.
     lean: bool,
 }
@@ -72,6 +88,10 @@ impl PyramidCache {
                 Ok(((*p).clone(), Arc::new(pyr)))
             })
             .collect::<Result<_, TrainError>>()?;
+        if let Ok(mut hard) = self.hard.lock() {
+            // Locations of a rebuilt pyramid mean other windows.
+            hard.retain(|k, _| !built.iter().any(|(p, _)| *p == k.image));
+        }
         let mut map = self
             .map
             .lock()
@@ -80,8 +100,29 @@ impl PyramidCache {
         Ok(())
     }
 
+    /// The hard locations an earlier training left for `key` (none if
+    /// there was none).
+    pub(super) fn hard(&self, key: &HardKey) -> Vec<Location> {
+        self.hard
+            .lock()
+            .ok()
+            .and_then(|h| h.get(key).cloned())
+            .unwrap_or_default()
+    }
+
+    /// Keeps each example's hard locations for later trainings, replacing
+    /// what an earlier training left for the same examples.
+    pub(super) fn remember_hard(&self, found: HashMap<HardKey, Vec<Location>>) {
+        if let Ok(mut hard) = self.hard.lock() {
+            hard.extend(found);
+        }
+    }
+
     /// Adds a pyramid built elsewhere (e.g. of a generated image).
     pub fn insert(&self, path: PathBuf, pyr: FeaturePyramid) {
+        if let Ok(mut hard) = self.hard.lock() {
+            hard.retain(|k, _| k.image != path);
+        }
         if let Ok(mut map) = self.map.lock() {
             map.insert(path, Arc::new(pyr));
         }

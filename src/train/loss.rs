@@ -266,6 +266,10 @@ impl LossAugment for BackgroundLoss<'_> {
     fn excludes(&self, _view: usize, grid: &CellGrid) -> bool {
         !self.background.contains(grid.pixel_box())
     }
+
+    fn centres(&self) -> Option<(f64, f64, f64, f64)> {
+        Some(self.background.region)
+    }
 }
 
 #[cfg(test)]

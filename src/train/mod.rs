@@ -58,6 +58,7 @@ use crate::vision::VisionError;
 use loss::{cell_truth, Background, IntegralMask, LossKind};
 use qp::{Plane, WorkingSet};
 
+use cache::HardKey;
 pub use cache::PyramidCache;
 pub use layout::{exact_concave, Layout, PLAIN_HOG_PRIOR};
 
@@ -251,6 +252,8 @@ struct Example {
     /// A part of a positive photograph searched as a negative image
     /// ([`TrainParams::background_regions`]).
     background: Option<Background>,
+    /// Where its hard locations are kept for later trainings.
+    key: HardKey,
 }
 
 struct GroundTruth {
@@ -496,9 +499,17 @@ pub fn train_joint(
                 seeds.push(l);
             }
         }
-        if let Some(t) = &truth {
-            seeds.insert(0, t.location);
-        }
+        let key = HardKey {
+            image: s.image.clone(),
+            region: None,
+            label: label.clone(),
+        };
+        let seeds = first_cache(
+            truth.as_ref().map(|t| t.location),
+            cache.hard(&key),
+            seeds,
+            &locs,
+        );
         let weight = if truth.is_some() { pos_w } else { neg_w };
         box_only.push(truth.is_some() && ann.is_some_and(|a| !a.mask_known));
         examples.push(Example {
@@ -507,6 +518,7 @@ pub fn train_joint(
             truth,
             cache: seeds,
             background: None,
+            key,
         });
     }
     for (image, instances) in &backgrounds {
@@ -520,7 +532,7 @@ pub fn train_joint(
             pyr.image_height as f64,
             instances,
         );
-        for bg in regions {
+        for (ri, bg) in regions.into_iter().enumerate() {
             let mut seeds = Vec::new();
             for _ in 0..params.init_locations * 4 {
                 if seeds.len() >= params.init_locations || locs.is_empty() {
@@ -531,6 +543,12 @@ pub fn train_joint(
                     seeds.push(l);
                 }
             }
+            let key = HardKey {
+                image: (*image).clone(),
+                region: Some(ri),
+                label: label.clone(),
+            };
+            let seeds = first_cache(None, cache.hard(&key), seeds, &locs);
             box_only.push(false);
             examples.push(Example {
                 pyr: pyr.clone(),
@@ -538,6 +556,7 @@ pub fn train_joint(
                 truth: None,
                 cache: seeds,
                 background: Some(bg),
+                key,
             });
         }
     }
@@ -644,6 +663,18 @@ pub fn train_joint(
     }
     report.planes = ws.planes.len();
     report.seconds = start.elapsed().as_secs_f64();
+    // Each example's hard locations seed the next training of this object
+    // on these images (a latent round, a cross-validation fold).
+    let mut found: HashMap<HardKey, Vec<Location>> = HashMap::new();
+    for ex in &examples {
+        let kept = found.entry(ex.key.clone()).or_default();
+        for l in &ex.cache {
+            if !kept.contains(l) {
+                kept.push(*l);
+            }
+        }
+    }
+    cache.remember_hard(found);
     let views = layout.to_views(&w);
     let meta = ModelMeta {
         format_version: FORMAT_VERSION,
@@ -744,6 +775,34 @@ pub fn learn_shapes(
             Some(shape)
         })
         .collect()
+}
+
+/// An example's first cache of locations: its ground truth, the hard
+/// locations an earlier training of the same object left for it (those
+/// that are locations of this model: the template may have changed), then
+/// the random seeds; each once.
+fn first_cache(
+    truth: Option<Location>,
+    warm: Vec<Location>,
+    seeds: Vec<Location>,
+    locations: &[Location],
+) -> Vec<Location> {
+    let valid: std::collections::HashSet<Location> = if warm.is_empty() {
+        Default::default()
+    } else {
+        locations.iter().copied().collect()
+    };
+    let mut out: Vec<Location> = Vec::with_capacity(1 + warm.len() + seeds.len());
+    let chosen = truth
+        .into_iter()
+        .chain(warm.into_iter().filter(|l| valid.contains(l)))
+        .chain(seeds);
+    for l in chosen {
+        if !out.contains(&l) {
+            out.push(l);
+        }
+    }
+    out
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {

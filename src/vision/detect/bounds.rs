@@ -653,16 +653,40 @@ impl Detector<'_> {
         max_loss: f64,
         pre: Option<&LevelBounds>,
         low_map: Option<&PlanarMap>,
+        centres: Option<(f64, f64, f64, f64)>,
     ) -> (usize, Vec<Candidate>) {
         let view = &self.views[vi];
         let (rows, cols) = (view.w.rows, view.w.cols);
         let n = rows * cols;
         let (mw, mh) = (level.hog.width(), level.hog.height());
-        let Some((x_lo, x_hi, y_lo, y_hi, min_inside)) =
+        let Some((mut x_lo, mut x_hi, mut y_lo, mut y_hi, min_inside)) =
             scan_range(mw, mh, rows, cols, params.max_truncation)
         else {
             return (0, Vec::new());
         };
+        if let Some((x0, y0, x1, y1)) = centres {
+            // Positions whose window centre, `(x + cols / 2)` cells, can
+            // fall in the rectangle (a cell wider either way; the exact
+            // test is the caller's).
+            let cs = CELL_SIZE as f64;
+            // In floating point, then cast (saturating): a region may be
+            // unbounded.
+            let span = |lo: f64, hi: f64, scale: f64, half: f64| {
+                (
+                    ((lo * scale / cs - half).floor() - 1.0) as isize,
+                    ((hi * scale / cs - half).ceil() + 1.0) as isize,
+                )
+            };
+            let (xa, xb) = span(x0, x1, level.scale_x, cols as f64 / 2.0);
+            let (ya, yb) = span(y0, y1, level.scale_y, rows as f64 / 2.0);
+            x_lo = x_lo.max(xa);
+            x_hi = x_hi.min(xb);
+            y_lo = y_lo.max(ya);
+            y_hi = y_hi.min(yb);
+            if x_lo > x_hi || y_lo > y_hi {
+                return (0, Vec::new());
+            }
+        }
         let mut out = Vec::new();
         let mut count = 0;
         let nx = (x_hi - x_lo + 1) as usize;

@@ -236,6 +236,12 @@ pub trait LossAugment: Sync {
     fn excludes(&self, _view: usize, _grid: &CellGrid) -> bool {
         false
     }
+    /// The pixel rectangle `(x0, y0, x1, y1)` outside which every window
+    /// centred there is excluded ([`LossAugment::excludes`]), if there is
+    /// one: the search then scans only the positions near it.
+    fn centres(&self) -> Option<(f64, f64, f64, f64)> {
+        None
+    }
 }
 
 /// The output of loss-augmented inference at one location.
@@ -542,6 +548,7 @@ impl<'a> Detector<'a> {
                     max_loss,
                     b,
                     low_maps.get(l),
+                    aug.and_then(|a| a.centres()),
                 )
             })
             .collect();
