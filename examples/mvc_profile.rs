@@ -60,7 +60,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             bound_gaps(&det, &pyr);
         }
         let t = Instant::now();
-        let (best, found, stats) = det.most_violated(&pyr, &aug, floor, 0.5, None)?;
+        let (best, found, stats) = det.most_violated(&pyr, &aug, floor, 0.5, None, None)?;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         println!(
             "{} {:>5} total {:7.1} ms stage1 {:6.1} ms mincut-stage {:7.1} ms  locations {} cands {} cuts {} found {} value {:?}",

@@ -3,14 +3,18 @@
 //! best location and its min-cut labelling, over all locations or over
 //! the example's cache of recent ones, summed into one plane.
 
+use std::collections::HashMap;
+use std::sync::Arc;
+
 use rayon::prelude::*;
 
 use super::layout::Layout;
 use super::loss::{BackgroundLoss, Truth, TruthLoss};
 use super::qp::Plane;
 use super::{Example, Found, Round, TrainError, TrainParams};
-use crate::vision::detect::{Detector, LossAugment};
+use crate::vision::detect::{DenseBounds, Detector, LossAugment};
 use crate::vision::energy::joint_feature;
+use crate::vision::pyramid::FeaturePyramid;
 
 /// One cutting-plane round: the most violated output of every example (over
 /// all locations when `full`, else over its cache) summed into a plane.
@@ -22,6 +26,22 @@ pub(super) fn search(
     full: bool,
     budget: Option<usize>,
 ) -> Result<Round, TrainError> {
+    // A photograph searched as several examples (its background regions)
+    // has its stage-1 bounds computed once per full search.
+    // (Keyed by the pyramid's address.)
+    let key = |pyr: &Arc<FeaturePyramid>| Arc::as_ptr(pyr) as usize;
+    let mut shared: HashMap<usize, DenseBounds> = HashMap::new();
+    if full {
+        let mut uses: HashMap<usize, (usize, &FeaturePyramid)> = HashMap::new();
+        for ex in examples.iter() {
+            uses.entry(key(&ex.pyr)).or_insert((0, &ex.pyr)).0 += 1;
+        }
+        shared = uses
+            .into_par_iter()
+            .filter(|(_, (n, _))| *n > 1)
+            .map(|(k, (_, pyr))| (k, det.dense_bounds(pyr, params.max_truncation)))
+            .collect();
+    }
     let results: Vec<Result<Found, TrainError>> = examples
         .par_iter()
         .map(|ex| {
@@ -58,8 +78,9 @@ pub(super) fn search(
             let mut extra = Vec::new();
             let best = if full {
                 let start = cached.as_ref().map_or(floor, |b| b.value);
+                let pre = shared.get(&key(&ex.pyr));
                 let (found, others, stats) =
-                    det.most_violated(&ex.pyr, aug, start, params.max_truncation, budget)?;
+                    det.most_violated(&ex.pyr, aug, start, params.max_truncation, budget, pre)?;
                 cuts = stats.min_cuts;
                 extra = others;
                 found.filter(|f| f.value > start).or(cached)

@@ -584,13 +584,22 @@ pub fn dense_bounds(
     views: &[ViewWeights],
     max_truncation: f64,
 ) -> DenseBounds {
+    let views: Vec<&ViewWeights> = views.iter().collect();
+    dense_bounds_of(pyr, &views, max_truncation)
+}
+
+fn dense_bounds_of(
+    pyr: &FeaturePyramid,
+    views: &[&ViewWeights],
+    max_truncation: f64,
+) -> DenseBounds {
     let levels = pyr
         .levels
         .par_iter()
         .map(|level| {
             views
                 .iter()
-                .map(|w| {
+                .map(|&w| {
                     let (mw, mh) = (level.hog.width(), level.hog.height());
                     let (x_lo, x_hi, y_lo, y_hi, _) =
                         scan_range(mw, mh, w.rows, w.cols, max_truncation)?;
@@ -637,6 +646,14 @@ pub fn responses(
 }
 
 impl Detector<'_> {
+    /// Stage 1's chain bounds of every position of `pyr` ([`dense_bounds`]
+    /// of this detector's viewpoints): computed once, they serve several
+    /// searches of one image (`pre` of [`Detector::most_violated`]).
+    pub fn dense_bounds(&self, pyr: &FeaturePyramid, max_truncation: f64) -> DenseBounds {
+        let views: Vec<&ViewWeights> = self.views.iter().map(|v| v.w).collect();
+        dense_bounds_of(pyr, &views, max_truncation)
+    }
+
     /// Stage 1 at every location of one level and viewpoint: the exact
     /// best-unary bound of each location that passes `cut`, or every location
     /// when not pruning.
@@ -664,6 +681,15 @@ impl Detector<'_> {
         else {
             return (0, Vec::new());
         };
+        // Bounds a backend (or an earlier pass) computed for exactly these
+        // positions.
+        let pre = pre.filter(|b| {
+            b.x_lo == x_lo
+                && b.y_lo == y_lo
+                && b.nx == (x_hi - x_lo + 1) as usize
+                && b.ny == (y_hi - y_lo + 1) as usize
+                && b.values.len() == b.nx * b.ny
+        });
         if let Some((x0, y0, x1, y1)) = centres {
             // Positions whose window centre, `(x + cols / 2)` cells, can
             // fall in the rectangle (a cell wider either way; the exact
@@ -693,14 +719,6 @@ impl Detector<'_> {
         let mut sums = vec![0.0f32; nx];
         let mut scratch = DenseScratch::default();
         let pair = chain_pair_weight(view.w);
-        // Bounds a backend computed for exactly these positions.
-        let pre = pre.filter(|b| {
-            b.x_lo == x_lo
-                && b.y_lo == y_lo
-                && b.nx == nx
-                && b.ny == (y_hi - y_lo + 1) as usize
-                && b.values.len() == b.nx * b.ny
-        });
         // Without usable bounds the caller may not have built the map.
         let low = match (self.low_rank, low_map) {
             (Some(lr), Some(lm)) if pre.is_none() && !lm.data.is_empty() => {
@@ -719,7 +737,9 @@ impl Detector<'_> {
             let oy = overlap(y, rows, mh);
             if params.prune {
                 if let Some(b) = pre {
-                    let r = (y - y_lo) as usize * nx;
+                    // Positions narrowed to `centres` lie inside the full
+                    // range `b` covers.
+                    let r = (y - b.y_lo) as usize * b.nx + (x_lo - b.x_lo) as usize;
                     sums.copy_from_slice(&b.values[r..r + nx]);
                 } else if let Some((lm, f)) = &low {
                     dense_row_with::<LOW_RANK_DIMS>(lm, f, pair, x_lo, y, &mut sums, &mut scratch);

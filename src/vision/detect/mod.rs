@@ -409,7 +409,9 @@ impl<'a> Detector<'a> {
     /// best value found. Also returns every location found on the way that
     /// beat the best value known when it was solved (hard examples).
     /// With a `budget`, the search stops after about that many min-cuts
-    /// (in order of the bound) and is no longer exact.
+    /// (in order of the bound) and is no longer exact. `pre`: stage 1's
+    /// bounds of this pyramid ([`Detector::dense_bounds`]), when several
+    /// searches share them.
     pub fn most_violated(
         &self,
         pyr: &FeaturePyramid,
@@ -417,6 +419,7 @@ impl<'a> Detector<'a> {
         floor: f64,
         max_truncation: f64,
         budget: Option<usize>,
+        pre: Option<&DenseBounds>,
     ) -> Result<(Option<Augmented>, Vec<Location>, DetectStats), VisionError> {
         let params = DetectParams {
             threshold: floor,
@@ -426,7 +429,7 @@ impl<'a> Detector<'a> {
             ..DetectParams::default()
         };
         params.validate()?;
-        let (solved, stats) = self.run(pyr, &params, Some(aug), budget, None);
+        let (solved, stats) = self.run(pyr, &params, Some(aug), budget, pre);
         let found: Vec<Location> = solved.iter().map(|s| s.cand.location()).collect();
         let best = solved
             .into_iter()
