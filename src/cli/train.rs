@@ -196,6 +196,7 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 eprintln!("skipped: {s}");
             }
             let pb = progress_bar(0, cat);
+            let started = std::time::Instant::now();
             let sources = args
                 .sources
                 .clone()
@@ -264,7 +265,9 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 &pb,
             )
             .map_err(Failure::input)?;
+            let mut correction_seconds = 0.0;
             if args.box_folds >= 2 {
+                let t = std::time::Instant::now();
                 pb.set_message(format!("{cat}: box correction"));
                 let (fitted, offsets) =
                     box_correction::fit(&samples, args.box_folds, &cache, |subset| {
@@ -294,6 +297,16 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                     ),
                 }
                 model.meta.box_correction = fitted;
+                correction_seconds = t.elapsed().as_secs_f64();
+            }
+            let seconds = started.elapsed().as_secs_f64();
+            if args.box_folds >= 2 {
+                eprintln!(
+                    "{cat}: trained in {seconds:.0} s ({correction_seconds:.0} s of it the box correction's {}-fold trainings)",
+                    args.box_folds
+                );
+            } else {
+                eprintln!("{cat}: trained in {seconds:.0} s");
             }
             if let Some(p) = model.meta.provenance.as_object_mut() {
                 p.insert(
