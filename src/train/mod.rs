@@ -858,8 +858,10 @@ pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
 /// 0.192 where 20x10 scored 0.408 (the backbone's cells see about 100
 /// pixels each, so a thin object needs more of them across). With
 /// background examples 16x8 scored 0.400 against 20x10's 0.244 (box-only,
-/// no box correction) and trained 3.5 times faster (297 s against 1027 s):
-/// a min-cut over 200 cells costs several times one over 128.
+/// no box correction; one run each, and the glue's figure moves by about
+/// 0.1 between runs whose scales differ by 0.1%) and trained 3.5 times
+/// faster (297 s against 1027 s): a min-cut over 200 cells costs several
+/// times one over 128.
 pub const LEARNED_CELLS_ACROSS: f64 = 8.0;
 
 /// How far below the template scale the pyramid of a small object on
