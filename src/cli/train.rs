@@ -265,7 +265,7 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 &pb,
             )
             .map_err(Failure::input)?;
-            let mut correction_seconds = 0.0;
+            let mut correction_seconds = None;
             if args.box_folds >= 2 {
                 let t = std::time::Instant::now();
                 pb.set_message(format!("{cat}: box correction"));
@@ -297,16 +297,15 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                     ),
                 }
                 model.meta.box_correction = fitted;
-                correction_seconds = t.elapsed().as_secs_f64();
+                correction_seconds = Some(t.elapsed().as_secs_f64());
             }
             let seconds = started.elapsed().as_secs_f64();
-            if args.box_folds >= 2 {
-                eprintln!(
-                    "{cat}: trained in {seconds:.0} s ({correction_seconds:.0} s of it the box correction's {}-fold trainings)",
+            match correction_seconds {
+                Some(c) => eprintln!(
+                    "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
                     args.box_folds
-                );
-            } else {
-                eprintln!("{cat}: trained in {seconds:.0} s");
+                ),
+                None => eprintln!("{cat}: trained in {seconds:.0} s"),
             }
             if let Some(p) = model.meta.provenance.as_object_mut() {
                 p.insert(
