@@ -44,7 +44,10 @@ pub(crate) struct TrainArgs {
     #[arg(long, value_delimiter = ',', value_parser = Source::parse)]
     pub(crate) sources: Option<Vec<Source>>,
     /// View components per object (the views are grouped by appearance and
-    /// aspect ratio; capped at the number of views). Several numbers,
+    /// aspect ratio; capped at the number of views). With box-only
+    /// photographs alone (no views, no masks) the boxes are grouped by
+    /// aspect ratio into components of equal size and the latent rounds
+    /// reassign them. Several numbers,
     /// comma-separated (e.g. `1,2,3`), are chosen among by cross-validation
     /// over the views (`--cv-folds` folds: each trains from the other
     /// views and is scored on occluded photographs made from its own); the

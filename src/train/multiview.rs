@@ -185,6 +185,41 @@ pub fn view_components(
     (assign, names)
 }
 
+/// Box-only photographs alone: their boxes of `label` grouped into at most
+/// `k` components of equal size by aspect ratio (height over width), the
+/// initialisation of a mixture of DPM (Felzenszwalb et al. 2010); each
+/// component's template takes its boxes' median shape and the latent
+/// rounds reassign the boxes. Sets every box's viewpoint; returns each
+/// component's name (its range of aspect ratios).
+pub fn aspect_components(boxes: &mut [Sample], label: &str, k: usize) -> Vec<Vec<String>> {
+    let mut order: Vec<(f64, usize)> = boxes
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| {
+            let a = s.annotation.as_ref().filter(|a| a.label == label)?;
+            let aspect = a.bbox.3 / a.bbox.2;
+            aspect.is_finite().then_some((aspect, i))
+        })
+        .collect();
+    order.sort_by(|x, y| x.0.total_cmp(&y.0));
+    let k = k.clamp(1, order.len().max(1));
+    let mut names = Vec::with_capacity(k);
+    for c in 0..k {
+        let group = &order[c * order.len() / k..(c + 1) * order.len() / k];
+        for &(_, i) in group {
+            if let Some(a) = boxes[i].annotation.as_mut() {
+                a.viewpoint = c;
+            }
+        }
+        let (lo, hi) = (
+            group.first().map_or(0.0, |g| g.0),
+            group.last().map_or(0.0, |g| g.0),
+        );
+        names.push(vec![format!("boxes, height/width {lo:.2}-{hi:.2}")]);
+    }
+    names
+}
+
 /// The photographs made from the views (positives of components
 /// `offset..`) and the view negatives, their pyramids put in `cache`.
 #[allow(clippy::too_many_arguments)]
@@ -331,6 +366,11 @@ pub fn train_sources(
     report.box_photographs = boxes.len();
     let known: Vec<&Sample> = src.fixed.iter().copied().chain(made.iter()).collect();
     let has_known_positive = known.iter().any(|s| ours(s));
+    if !has_known_positive && mv.components > 1 {
+        let names = aspect_components(&mut boxes, label, mv.components);
+        report.components = names.clone();
+        component_views.extend(names);
+    }
     if !boxes.is_empty() {
         let refs: Vec<&Sample> = boxes.iter().collect();
         cache.fill(&refs, &params.pyramid, &params.segmentation, progress)?;
@@ -357,6 +397,10 @@ pub fn train_sources(
     let first = if src.views.is_empty() { 0 } else { offset };
     if !boxes.is_empty() {
         for _ in 0..mv.latent_rounds {
+            let before: Vec<Option<usize>> = boxes
+                .iter()
+                .map(|s| s.annotation.as_ref().map(|a| a.viewpoint))
+                .collect();
             let round = impute_samples(
                 &model,
                 label,
@@ -371,6 +415,28 @@ pub fn train_sources(
                 round.boxes, round.component_changes, round.mean_visible
             ));
             report.imputation.push(round);
+            // A component left without a box would have no template: the
+            // boxes keep their components then (their visibility is still
+            // the imputed one).
+            let n_components = model.meta.viewpoints.len();
+            let mut used = vec![false; n_components];
+            for a in known
+                .iter()
+                .copied()
+                .chain(boxes.iter())
+                .filter_map(|s| s.annotation.as_ref().filter(|a| a.label == label))
+            {
+                if let Some(u) = used.get_mut(a.viewpoint) {
+                    *u = true;
+                }
+            }
+            if used.contains(&false) {
+                for (s, v) in boxes.iter_mut().zip(&before) {
+                    if let (Some(a), Some(v)) = (s.annotation.as_mut(), v) {
+                        a.viewpoint = *v;
+                    }
+                }
+            }
             let all: Vec<&Sample> = known.iter().copied().chain(boxes.iter()).collect();
             let (m, r) = train_joint(label, &[label], &all, cache, params, progress)?;
             report.rounds.push(r);
@@ -426,6 +492,38 @@ mod tests {
             mask,
             bbox: (20.0, 16.0, bw as f64, bh as f64),
         }
+    }
+
+    #[test]
+    fn box_only_components_split_the_boxes_by_aspect() {
+        let sample = |label: &str, w: f64, h: f64| Sample {
+            image: PathBuf::from(format!("{label}-{w}x{h}.png")),
+            id: format!("{label}-{w}x{h}"),
+            annotation: Some(Annotation {
+                label: label.into(),
+                bbox: (0.0, 0.0, w, h),
+                visible: Mask::new(4, 4),
+                viewpoint: 0,
+                mask_known: false,
+            }),
+        };
+        // Tall bottles, bottles seen from above, and another object.
+        let mut boxes = vec![
+            sample("glue", 40.0, 84.0),
+            sample("glue", 44.0, 42.0),
+            sample("glue", 38.0, 80.0),
+            sample("duck", 50.0, 20.0),
+            sample("glue", 46.0, 50.0),
+        ];
+        let names = aspect_components(&mut boxes, "glue", 2);
+        let view = |i: usize| boxes[i].annotation.as_ref().unwrap().viewpoint;
+        assert_eq!(names.len(), 2);
+        assert_eq!((view(1), view(4)), (0, 0));
+        assert_eq!((view(0), view(2)), (1, 1));
+        assert_eq!(view(3), 0, "another object's box is left alone");
+        assert_eq!(names[0], vec!["boxes, height/width 0.95-1.09".to_string()]);
+        // No more components than boxes.
+        assert_eq!(aspect_components(&mut boxes, "glue", 9).len(), 4);
     }
 
     #[test]
