@@ -873,6 +873,9 @@ pub const LEARNED_CELLS_ACROSS: f64 = 8.0;
 /// run each; the training 10% longer).
 pub const LEARNED_SCALES_BELOW: f64 = 2.0;
 
+/// Pyramid levels per octave of small objects (see [`small_object_scales`]).
+pub const SMALL_OBJECT_LEVELS_PER_OCTAVE: u32 = 5;
+
 /// Template scale and pyramid for small objects: when the median box of
 /// `sizes` (`(width, height)` in pixels) would make a template of under
 /// [`SMALL_TEMPLATE_CELLS`] (on the side of a square of its area) at
@@ -915,15 +918,10 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
     // glue's 44x40 box, a bottle seen from above, asked for 3.64 by its
     // longer side against 2.66 by its area: twice the pixels to search,
     // the training over 50 min).
-    let below = if params.pyramid.features.is_hog() {
-        median / smallest
-    } else {
-        side / smallest_side
-    };
     let max_scale = if params.pyramid.features.is_hog() {
-        (scale * below).clamp(scale, 4.0)
+        (scale * median / smallest).clamp(scale, 4.0)
     } else {
-        anchored_max_scale(scale, below)
+        anchored_max_scale(scale, side / smallest_side)
     };
     let mut out = params.clone();
     out.template_scale = scale;
@@ -937,7 +935,7 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
     } else {
         ((scale / LEARNED_SCALES_BELOW) as f32).min(max_scale as f32)
     };
-    out.pyramid.levels_per_octave = 5;
+    out.pyramid.levels_per_octave = SMALL_OBJECT_LEVELS_PER_OCTAVE;
     Some(out)
 }
 
@@ -948,7 +946,7 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
 /// of 1.98 left its levels at 1.72 and 1.50 around its template's 1.60:
 /// 0.599 AUC against 0.657 with a level at 1.60.
 fn anchored_max_scale(scale: f64, below: f64) -> f64 {
-    let lpo = 5.0;
+    let lpo = f64::from(SMALL_OBJECT_LEVELS_PER_OCTAVE);
     let mut levels = (below.max(1.0).log2() * lpo).round();
     while levels > 0.0 && scale * (levels / lpo).exp2() > 4.0 {
         levels -= 1.0;
