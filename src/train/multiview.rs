@@ -46,6 +46,11 @@ pub struct MultiViewParams {
     /// Whether a box's visible cells are imputed (latent) or the whole box
     /// is taken as visible (only its component is imputed).
     pub latent_visibility: bool,
+    /// The box-only photographs already carry an imputation (another
+    /// training's, [`MultiViewReport::imputed_boxes`]): round 0 trains
+    /// with their visibility and components instead of every box visible
+    /// in components by aspect.
+    pub boxes_imputed: bool,
 }
 
 impl Default for MultiViewParams {
@@ -61,6 +66,7 @@ impl Default for MultiViewParams {
             latent_rounds: 2,
             min_iou: 0.6,
             latent_visibility: true,
+            boxes_imputed: false,
         }
     }
 }
@@ -109,6 +115,10 @@ pub struct MultiViewReport {
     pub components_cv: Option<ComponentsCv>,
     /// Every round's SVM report (the last one is the model's).
     pub rounds: Vec<TrainReport>,
+    /// The box-only photographs as the last round trained on them (their
+    /// imputed visibility and components), in the order given.
+    #[serde(skip)]
+    pub imputed_boxes: Vec<Sample>,
 }
 
 /// The training inputs of one object.
@@ -366,7 +376,7 @@ pub fn train_sources(
     report.box_photographs = boxes.len();
     let known: Vec<&Sample> = src.fixed.iter().copied().chain(made.iter()).collect();
     let has_known_positive = known.iter().any(|s| ours(s));
-    if !has_known_positive && mv.components > 1 {
+    if !has_known_positive && mv.components > 1 && !mv.boxes_imputed {
         let names = aspect_components(&mut boxes, label, mv.components);
         report.components = names.clone();
         component_views.extend(names);
@@ -443,6 +453,14 @@ pub fn train_sources(
             model = m;
         }
     }
+    if !has_known_positive && mv.components > 1 && mv.boxes_imputed {
+        // The components of an earlier training's imputation: named as
+        // that training named them only in its own provenance.
+        while component_views.len() < mv.components {
+            component_views.push(vec![format!("boxes-{}", component_views.len())]);
+        }
+    }
+    report.imputed_boxes = boxes;
     for (vm, names) in model.meta.viewpoints.iter_mut().zip(&component_views) {
         vm.views = names.clone();
     }
