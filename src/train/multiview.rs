@@ -453,13 +453,6 @@ pub fn train_sources(
             model = m;
         }
     }
-    if !has_known_positive && mv.components > 1 && mv.boxes_imputed {
-        // The components of an earlier training's imputation: named as
-        // that training named them only in its own provenance.
-        while component_views.len() < mv.components {
-            component_views.push(vec![format!("boxes-{}", component_views.len())]);
-        }
-    }
     report.imputed_boxes = boxes;
     for (vm, names) in model.meta.viewpoints.iter_mut().zip(&component_views) {
         vm.views = names.clone();
