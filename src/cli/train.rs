@@ -140,8 +140,8 @@ const COCO_BOX_FOLDS: usize = 2;
 /// CCCP rounds of each box-correction fold (`--box-fold-rounds`), which
 /// starts from the full training's imputation of the box-only
 /// photographs: LM-O glue, box-only, learned cells: the folds' trainings
-/// took 515 of 813 s with the full training's two rounds each
-/// (docs/training.md).
+/// took 515 of 813 s with the full training's two rounds each, 280 of
+/// 585 s with none, the model's AUC the same (docs/training.md).
 const COCO_BOX_FOLD_ROUNDS: usize = 0;
 
 /// Background examples per photograph of `train --coco`
