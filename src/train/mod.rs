@@ -929,7 +929,8 @@ pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option
     // Learned cells go down an octave below the template scale, not two
     // as HOG: their large receptive fields make far smaller levels (the
     // objects seen four times the median) a source of false positives
-    // (an earlier build: 0.426 down to a quarter).
+    // (an earlier build: 0.426 down to a quarter; the LM-O glue down to a
+    // quarter on this one: 0.346 against 0.350).
     out.pyramid.min_scale = if params.pyramid.features.is_hog() {
         ((scale / 4.0) as f32).min(out.pyramid.min_scale)
     } else {
