@@ -437,3 +437,134 @@ fn two_meshes_trained_jointly_detect_each_object_under_its_own_label() {
     assert_eq!(r.detection.unwrap().label, "box");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `--photos` with its default route (`boxes`): box-labelled photographs
+/// of the box (renders of one seed over generated scenes, saved with their
+/// boxes only) and the mesh's renders drawn over those photographs train
+/// one model; it records the route, gives its component start poses, and
+/// finds the box in renders over other scenes.
+#[test]
+fn mesh_with_box_photographs_trains_them_beside_renders_drawn_over_them() {
+    let dir = std::env::temp_dir().join(format!("sdhop-mesh-photos-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let ply = dir.join("box.ply");
+    std::fs::write(&ply, coloured_box_ply()).unwrap();
+    let mesh = Mesh::parse(&std::fs::read(&ply).unwrap()).unwrap();
+    let colours = Mesh::ply_vertex_colours(&std::fs::read(&ply).unwrap()).unwrap();
+    let scenes: Vec<ColorImage> = (0..4)
+        .map(|i| background(640, 480, 300 + i).unwrap())
+        .collect();
+    // The user's photographs: boxes only (no masks, no poses).
+    let photos = render_set(
+        &mesh,
+        colours.as_deref(),
+        "box",
+        &scenes,
+        &RenderParams {
+            renders: 16,
+            components: 1,
+            seed: 5,
+            ..RenderParams::default()
+        },
+        &dir.join("photos"),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let mut images = Vec::new();
+    let mut annotations = Vec::new();
+    for (i, s) in photos.samples.iter().enumerate() {
+        let a = s.annotation.as_ref().unwrap();
+        images.push(serde_json::json!({
+            "id": i + 1, "width": 320, "height": 240,
+            "file_name": s.image.file_name().unwrap().to_str().unwrap(),
+        }));
+        let (x, y, w, h) = a.bbox;
+        annotations.push(serde_json::json!({
+            "id": i + 1, "image_id": i + 1, "category_id": 1,
+            "bbox": [x, y, w, h], "iscrowd": 0,
+        }));
+    }
+    let coco = dir.join("photos/boxes.json");
+    std::fs::write(
+        &coco,
+        serde_json::json!({
+            "images": images, "annotations": annotations,
+            "categories": [{"id": 1, "name": "box"}],
+        })
+        .to_string(),
+    )
+    .unwrap();
+    let out = dir.join("models/box.safetensors");
+    let work = dir.join("work");
+    train_mesh(&[
+        "--mesh",
+        ply.to_str().unwrap(),
+        "--name",
+        "box",
+        "--photos",
+        coco.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--work",
+        work.to_str().unwrap(),
+        "--renders",
+        "40",
+        "--features",
+        "hog",
+        "--max-passes",
+        "3",
+        "--latent-rounds",
+        "1",
+    ]);
+    let model = Model::load(&out).unwrap();
+    let photos_meta = &model.meta.provenance["mesh"]["photos"];
+    assert_eq!(photos_meta["route"], "boxes", "{photos_meta}");
+    assert_eq!(photos_meta["boxes"], 16);
+    for v in &model.meta.viewpoints {
+        assert!(!v.rotations.is_empty());
+        let d = v.direction.expect("a viewing direction per component");
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        assert!((n - 1.0).abs() < 1e-6);
+    }
+    // The renders were drawn over the photographs: 40 of them, each a
+    // positive beside the 16 photographs.
+    assert!(work.join("box_00039.jpg").is_file());
+    let others: Vec<ColorImage> = (0..3)
+        .map(|i| background(640, 480, 900 + i).unwrap())
+        .collect();
+    let test = render_set(
+        &mesh,
+        colours.as_deref(),
+        "box",
+        &others,
+        &RenderParams {
+            renders: 20,
+            components: 1,
+            seed: 77,
+            ..RenderParams::default()
+        },
+        &dir.join("test"),
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let det = Detector::new(&model.views).unwrap();
+    let params = DetectParams {
+        threshold: -1e9,
+        max_detections: 1,
+        ..model.meta.detection
+    };
+    let mut hits = 0;
+    for s in &test.samples {
+        let img = sdhop::data::load_image(&s.image).unwrap();
+        let pyr =
+            FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        let (dets, _) = det.detect(&pyr, &params).unwrap();
+        let a = s.annotation.as_ref().unwrap();
+        if dets.first().is_some_and(|d| box_iou(d.bbox, a.bbox) >= 0.5) {
+            hits += 1;
+        }
+    }
+    assert!(hits >= 14, "{hits} of 20 new renders found");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -7,7 +7,7 @@ use super::*;
 use crate::eval::bop_detect::auc_curve;
 use crate::pose::mesh::Mesh;
 use crate::train::mesh::{
-    render_set, render_set_with, representative_rotations, Occluder, RenderParams,
+    render_set, render_set_with, representative_rotations, without_boxes, Occluder, RenderParams,
     ROTATIONS_PER_COMPONENT,
 };
 use crate::train::multiview::{train_sources, MultiViewParams, Sources};
@@ -35,9 +35,12 @@ pub(crate) struct MeshArgs {
     #[arg(long)]
     pub(crate) model_name: Option<String>,
     /// Folder of background photographs without the object (JPEG or PNG):
-    /// pasted behind and over the renders, and the negatives.
-    #[arg(long)]
-    pub(crate) backgrounds: PathBuf,
+    /// pasted behind and over the renders, and the negatives. Optional
+    /// with `--photos` (route `boxes`: the renders are pasted into the
+    /// photographs; given, its first `--negatives` images are negatives
+    /// too).
+    #[arg(long, required_unless_present = "photos")]
+    pub(crate) backgrounds: Option<PathBuf>,
     /// The weights file to write (default `models/MODEL.safetensors`, MODEL
     /// the model's name).
     #[arg(long)]
@@ -46,9 +49,10 @@ pub(crate) struct MeshArgs {
     /// per object when there are several).
     #[arg(long)]
     pub(crate) work: Option<PathBuf>,
-    /// Renders of each object.
-    #[arg(long, default_value_t = RenderParams::default().renders)]
-    pub(crate) renders: usize,
+    /// Renders of each object (default 400; with `--photos`, route
+    /// `boxes`: 100).
+    #[arg(long)]
+    pub(crate) renders: Option<usize>,
     /// Viewpoint components (templates) of each object.
     #[arg(long, default_value_t = RenderParams::default().components)]
     pub(crate) components: usize,
@@ -112,6 +116,17 @@ pub(crate) struct MeshArgs {
     /// object per model.
     #[arg(long, conflicts_with = "from_views")]
     pub(crate) photos: Option<PathBuf>,
+    /// With `--photos`: how renders and photographs train together.
+    /// `boxes` (default): the renders are drawn over the photographs (each
+    /// with the object's boxes taken out) and train beside the
+    /// photographs' boxes as more box-labelled photographs, as `train
+    /// --coco` trains box-only photographs (visibility and component
+    /// latent, learned cells, box correction); each component's start
+    /// poses are the rotations of the renders imputed to it.
+    /// `renders-first`: the renders over the `--backgrounds` train the
+    /// components first, then the boxes are imputed into them.
+    #[arg(long, value_enum, default_value_t = PhotoRoute::Boxes, requires = "photos")]
+    pub(crate) photo_route: PhotoRoute,
     /// With `--photos`: rounds of imputing the boxes and retraining.
     #[arg(long, default_value_t = MultiViewParams::default().latent_rounds, requires = "photos")]
     pub(crate) latent_rounds: usize,
@@ -128,6 +143,26 @@ pub(crate) struct MeshArgs {
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
 }
+
+/// How renders and box-labelled photographs train together (`--photo-route`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub(crate) enum PhotoRoute {
+    /// Renders drawn over the photographs train as more box photographs.
+    Boxes,
+    /// Renders train the components; the boxes are imputed into them.
+    RendersFirst,
+}
+
+/// Renders per object with `--photos`, route `boxes` (`--renders`): LM-O
+/// ape, 50 box photographs and 100 renders, AUC 0.652 against 0.601
+/// from the photographs alone (docs/training.md).
+const PHOTO_RENDERS: usize = 100;
+
+/// The cells of the `--photos` routes: the learned ones (LM-O, mesh and
+/// 50 box photographs: ape 0.527 and duck 0.572 against HOG's 0.310 and
+/// 0.156 on the `renders-first` route; docs/training.md).
+const PHOTO_FEATURES: FeatureKind = FeatureKind::Cnn;
 
 /// How the visible part of a box drawn on a photograph is labelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
@@ -335,7 +370,16 @@ pub(crate) fn image_files(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
 
 pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     let start = std::time::Instant::now();
-    let (mut params, _) = args.settings.params(FeatureKind::Hog)?;
+    let boxes_route = args.photos.is_some() && args.photo_route == PhotoRoute::Boxes;
+    let features = if args.photos.is_some() {
+        PHOTO_FEATURES
+    } else {
+        FeatureKind::Hog
+    };
+    let (mut params, _) = args.settings.params(features)?;
+    // Route `boxes` sets its scales as `train --coco` does (from the
+    // photographs' boxes), in `train_photographs`.
+    let mesh_scales = !boxes_route && args.settings.config.is_none();
     // Templates of about 12 cells (smaller ones fit even their own
     // training renders badly: 50% top-1 with 5-8 cells); upsampled levels
     // find objects down to 40% of that (training must see those levels
@@ -343,13 +387,13 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     // LM-O ape, its upsampled levels full of false positives), several
     // octaves cover a wide range of sizes (unless the flags or the config
     // say otherwise).
-    if args.settings.levels_per_octave.is_none() && args.settings.config.is_none() {
+    if args.settings.levels_per_octave.is_none() && mesh_scales {
         params.pyramid.levels_per_octave = 5;
     }
-    if args.settings.max_scale.is_none() && args.settings.config.is_none() {
+    if args.settings.max_scale.is_none() && mesh_scales {
         params.pyramid.max_scale = 2.5;
     }
-    if args.settings.min_scale.is_none() && args.settings.config.is_none() {
+    if args.settings.min_scale.is_none() && mesh_scales {
         params.pyramid.min_scale = 0.125;
     }
     // Objects in photographs are small (LM-O: 37-343 px, median about
@@ -358,20 +402,24 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     // training sees the objects on the same upsampled levels (LM-O ape:
     // 80-180 px renders at template scale 0.8 AUC 0.259, 40-110 px at 1.4
     // AUC 0.319).
-    if args.settings.template_scale.is_none() && args.settings.config.is_none() {
+    if args.settings.template_scale.is_none() && mesh_scales {
         params.template_scale = 1.4;
     }
     // The renders never cut the object at the image border, so the model
     // learns nothing about truncated boxes: allowing them, boxes hanging
     // off LM-O's bottom border scored 5.7 (AUC 0.000); without, 0.099.
-    if args.settings.config.is_none() {
+    if mesh_scales {
         params.max_truncation = 0.0;
     }
     // With `--photos`: the boxes' share of the positives' weight.
     params.box_share = args.photo_share;
     params.validate().map_err(Failure::input)?;
     let render = RenderParams {
-        renders: args.renders,
+        renders: args.renders.unwrap_or(if boxes_route {
+            PHOTO_RENDERS
+        } else {
+            RenderParams::default().renders
+        }),
         components: args.components,
         elevation: args.elevation,
         roll: args.roll,
@@ -448,11 +496,23 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
             Ok((file.clone(), Occluder { mesh, colours }))
         })
         .collect::<Result<_, Failure>>()?;
-    let files = image_files(&args.backgrounds)?;
-    let backgrounds: Vec<ColorImage> = files
-        .iter()
-        .map(|p| pose_data::background_image(p))
-        .collect::<Result<_, _>>()?;
+    let files =
+        match &args.backgrounds {
+            Some(dir) => image_files(dir)?,
+            None if boxes_route => Vec::new(),
+            None => return Err(Failure::input(
+                "--photo-route renders-first draws the renders over --backgrounds: give the folder",
+            )),
+        };
+    // Route `boxes`: the renders are drawn over the user's photographs,
+    // the object taken out of them.
+    let backgrounds: Vec<ColorImage> = match &photos {
+        Some(p) if boxes_route => p.scenes()?,
+        _ => files
+            .iter()
+            .map(|p| pose_data::background_image(p))
+            .collect::<Result<_, _>>()?,
+    };
     let work = args
         .work
         .clone()
@@ -545,9 +605,31 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     // Pyramids without their pixels: the renders' and negatives' images
     // and per-pixel segments are a quarter of the memory, and training
     // needs none of them (LM-O cat: 3.79 GiB peak with them).
-    let cache = PyramidCache::lean();
+    // Route `boxes` keeps the pixels, as `train --coco` does (its box
+    // correction detects on held-out photographs).
+    let cache = if boxes_route {
+        PyramidCache::default()
+    } else {
+        PyramidCache::lean()
+    };
     let pb = progress_bar(0, &format!("{model_name}: training"));
-    let (mut model, report) = if args.from_views {
+    let (mut model, report) = if let (Some(photos), true) = (&photos, boxes_route) {
+        let route = train_with_photo_boxes(
+            &args.name[0],
+            photos,
+            &samples,
+            &poses,
+            &objects[0].mesh,
+            &negatives,
+            args,
+            &cache,
+            &params,
+            &pb,
+        )?;
+        directions = route.directions;
+        rotations = route.rotations;
+        (route.model, route.report)
+    } else if args.from_views {
         let views_route = train_from_views(
             &objects[0],
             &samples,
@@ -618,30 +700,36 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         view.direction = Some(*dir);
         view.rotations = rots.clone();
     }
-    let pb = progress_bar(0, &format!("{model_name}: colour weight"));
-    let (weight, table) = choose_colour_weight(
-        &model,
-        &objects,
-        &backgrounds,
-        &render,
-        &work.join("check"),
-        &pb,
-    )?;
-    pb.finish_and_clear();
-    eprintln!(
-        "{model_name}: colour weight {weight} (AUC on held-out renders per weight: {})",
-        table
-            .iter()
-            .map(|(w, a)| format!("{w}: {a:.3}"))
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    model.meta.detection.colour_weight = weight;
-    if let Some(obj) = model.meta.provenance.as_object_mut() {
-        obj.insert(
-            "colour_weight".into(),
-            serde_json::json!({"chosen": weight, "auc_per_weight": table}),
+    // Route `boxes` trains as `train --coco` does, without the colour
+    // agreement (it was chosen on renders, which its photographs outrank).
+    if !boxes_route {
+        let pb = progress_bar(0, &format!("{model_name}: colour weight"));
+        let (weight, table) = choose_colour_weight(
+            &model,
+            &objects,
+            &backgrounds,
+            &render,
+            &work.join("check"),
+            &pb,
+        )?;
+        pb.finish_and_clear();
+        eprintln!(
+            "{model_name}: colour weight {weight} (AUC on held-out renders per weight: {})",
+            table
+                .iter()
+                .map(|(w, a)| format!("{w}: {a:.3}"))
+                .collect::<Vec<_>>()
+                .join(", ")
         );
+        model.meta.detection.colour_weight = weight;
+        if let Some(obj) = model.meta.provenance.as_object_mut() {
+            obj.insert(
+                "colour_weight".into(),
+                serde_json::json!({"chosen": weight, "auc_per_weight": table}),
+            );
+        }
+    }
+    if let Some(obj) = model.meta.provenance.as_object_mut() {
         let meshes: Vec<serde_json::Value> = objects
             .iter()
             .map(|o| {
@@ -668,11 +756,12 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
                     "boxes": p.boxes.len(),
                     "negatives": p.negatives.len(),
                     "skipped": p.skipped,
+                    "route": args.photo_route,
                     "latent_rounds": args.latent_rounds,
                     "visibility": args.photo_visibility,
                     "share": args.photo_share,
                 })),
-                "backgrounds": args.backgrounds.display().to_string(),
+                "backgrounds": args.backgrounds.as_ref().map(|b| b.display().to_string()),
                 "negatives": negatives.len(),
             }),
         );
@@ -825,6 +914,184 @@ struct PhotoSamples {
     negatives: Vec<Sample>,
     /// Photographs left out, and why.
     skipped: Vec<String>,
+    /// Every photograph and the boxes of the object in it (ignored ones
+    /// too): the scenes route `boxes` draws the renders over.
+    scenes: Vec<(PathBuf, Vec<BoxXywh>)>,
+}
+
+/// Longest side of a scene the renders are drawn over (larger photographs
+/// are shrunk to it).
+const SCENE_SIDE: usize = 640;
+
+impl PhotoSamples {
+    /// The photographs with the object taken out (see
+    /// [`crate::train::mesh::without_boxes`]), at most [`SCENE_SIDE`]
+    /// pixels on their longer side.
+    fn scenes(&self) -> Result<Vec<ColorImage>, Failure> {
+        self.scenes
+            .iter()
+            .map(|(path, boxes)| {
+                let img = crate::data::load_image(path).map_err(Failure::input)?;
+                let out = without_boxes(&img, boxes);
+                let longer = out.width().max(out.height());
+                if longer <= SCENE_SIDE {
+                    return Ok(out);
+                }
+                let f = SCENE_SIDE as f64 / longer as f64;
+                let (w, h) = (
+                    ((out.width() as f64 * f).round() as usize).max(1),
+                    ((out.height() as f64 * f).round() as usize).max(1),
+                );
+                out.resize_area(w, h).map_err(Failure::input)
+            })
+            .collect()
+    }
+}
+
+/// A model trained by route `boxes`, and each component's mean viewing
+/// direction and start rotations.
+struct PhotoBoxesRoute {
+    model: Model,
+    report: TrainReport,
+    directions: Vec<[f64; 3]>,
+    rotations: Vec<Vec<[f64; 4]>>,
+}
+
+/// `--photos`, route `boxes`: the renders (drawn over the photographs)
+/// become box-labelled photographs beside the user's, and the whole set
+/// trains as `train --coco` trains box-only photographs
+/// ([`super::train::train_photographs`]). A component's direction and
+/// start rotations are those of the renders imputed to it (of all renders
+/// where none was).
+#[allow(clippy::too_many_arguments)]
+fn train_with_photo_boxes(
+    name: &str,
+    photos: &PhotoSamples,
+    renders: &[Sample],
+    poses: &[crate::pose::Pose],
+    mesh: &Mesh,
+    negatives: &[Sample],
+    args: &MeshArgs,
+    cache: &PyramidCache,
+    params: &TrainParams,
+    pb: &indicatif::ProgressBar,
+) -> Result<PhotoBoxesRoute, Failure> {
+    use super::train::{train_photographs, BoxRoute};
+    let as_boxes: Vec<Sample> = renders.iter().map(as_box_photograph).collect();
+    let samples: Vec<Sample> = photos
+        .boxes
+        .iter()
+        .chain(&as_boxes)
+        .chain(&photos.negatives)
+        .cloned()
+        .collect();
+    let route = BoxRoute {
+        sources: vec![
+            crate::train::ko8::Source::Single,
+            crate::train::ko8::Source::Boxes,
+        ],
+        mirror_photos: false,
+        box_folds: super::train::COCO_BOX_FOLDS,
+        box_fold_rounds: super::train::COCO_BOX_FOLD_ROUNDS,
+    };
+    let mv = MultiViewParams {
+        latent_rounds: args.latent_rounds,
+        latent_visibility: args.photo_visibility == PhotoVisibility::Latent,
+        ..MultiViewParams::default()
+    };
+    let (mut model, report, trained) = train_photographs(
+        name,
+        &samples,
+        negatives,
+        &route,
+        &args.settings,
+        params,
+        &mv,
+        cache,
+        pb,
+    )?;
+    for v in &mut model.meta.viewpoints {
+        v.views.clear();
+    }
+    // The component each render was imputed to, by its image.
+    let component: std::collections::HashMap<&Path, usize> = trained
+        .iter()
+        .filter_map(|s| {
+            s.annotation
+                .as_ref()
+                .map(|a| (s.image.as_path(), a.viewpoint))
+        })
+        .collect();
+    let k = model.meta.viewpoints.len();
+    let assign: Vec<usize> = renders
+        .iter()
+        .map(|s| {
+            component
+                .get(s.image.as_path())
+                .copied()
+                .unwrap_or(usize::MAX)
+        })
+        .collect();
+    let (lo, hi) = mesh.bounds();
+    let centre = (lo + hi) / 2.0;
+    let toward_camera = |p: &crate::pose::Pose| {
+        let camera = -(p.rotation.transpose() * p.translation);
+        (camera - centre).normalize()
+    };
+    let mean_direction = |chosen: &dyn Fn(usize) -> bool| -> Option<[f64; 3]> {
+        let sum: Vector3<f64> = poses
+            .iter()
+            .zip(&assign)
+            .filter(|(_, &c)| chosen(c))
+            .map(|(p, _)| toward_camera(p))
+            .sum();
+        (sum.norm() > 1e-12).then(|| sum.normalize().into())
+    };
+    let rs: Vec<nalgebra::Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
+    let own = representative_rotations(&rs, &assign, k, ROTATIONS_PER_COMPONENT);
+    let all = representative_rotations(&rs, &vec![0; rs.len()], 1, ROTATIONS_PER_COMPONENT);
+    let all = all.into_iter().next().unwrap_or_default();
+    let everywhere = mean_direction(&|_| true).unwrap_or([0.0, 0.0, 1.0]);
+    let directions = (0..k)
+        .map(|c| mean_direction(&|a| a == c).unwrap_or(everywhere))
+        .collect();
+    let rotations = own
+        .into_iter()
+        .map(|r| if r.is_empty() { all.clone() } else { r })
+        .collect();
+    let imputed = assign.iter().filter(|&&c| c < k).count();
+    eprintln!(
+        "{name}: {} photographs' boxes and {} renders trained together; renders per component {:?}",
+        photos.boxes.len(),
+        renders.len(),
+        (0..k)
+            .map(|c| assign.iter().filter(|&&a| a == c).count())
+            .collect::<Vec<_>>()
+    );
+    if imputed < renders.len() {
+        eprintln!(
+            "{name}: {} renders not found among the trained samples: their rotations count for every component",
+            renders.len() - imputed
+        );
+    }
+    Ok(PhotoBoxesRoute {
+        model,
+        report,
+        directions,
+        rotations,
+    })
+}
+
+/// A render as a box-labelled photograph: its box, its visibility and
+/// component left to training.
+fn as_box_photograph(render: &Sample) -> Sample {
+    let mut s = render.clone();
+    if let Some(a) = s.annotation.as_mut() {
+        a.visible = crate::data::box_mask(a.bbox, a.visible.width, a.visible.height);
+        a.viewpoint = 0;
+        a.mask_known = false;
+    }
+    s
 }
 
 /// Reads `file`'s photographs for the object `name` (see
@@ -838,8 +1105,13 @@ fn photo_samples(file: &Path, name: &str) -> Result<PhotoSamples, Failure> {
         boxes: Vec::new(),
         negatives: Vec::new(),
         skipped: Vec::new(),
+        scenes: Vec::new(),
     };
     for p in loaded.photos {
+        out.scenes.push((
+            p.image.clone(),
+            p.boxes.iter().chain(&p.ignore).copied().collect(),
+        ));
         let id = crate::data::file_stem(&p.image);
         match (&p.boxes[..], p.ignore.is_empty()) {
             ([b], true) => out.boxes.push(Sample {

@@ -135,14 +135,14 @@ const COCO_FEATURES: FeatureKind = FeatureKind::Cnn;
 /// Folds of `train --coco`'s box correction (`--box-folds`): LM-O,
 /// box-only, learned cells: the windows on held-out photographs are 0.82-
 /// 0.85 of the objects' boxes (docs/training.md).
-const COCO_BOX_FOLDS: usize = 2;
+pub(crate) const COCO_BOX_FOLDS: usize = 2;
 
 /// CCCP rounds of each box-correction fold (`--box-fold-rounds`), which
 /// starts from the full training's imputation of the box-only
 /// photographs: LM-O glue, box-only, learned cells: the folds' trainings
 /// took 515 of 813 s with the full training's two rounds each, 280 of
 /// 585 s with none, the model's AUC the same (docs/training.md).
-const COCO_BOX_FOLD_ROUNDS: usize = 0;
+pub(crate) const COCO_BOX_FOLD_ROUNDS: usize = 0;
 
 /// Background examples per photograph of `train --coco`
 /// (`--background-regions`): LM-O, box-only, learned cells, the ape 0.509
@@ -213,131 +213,26 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 eprintln!("skipped: {s}");
             }
             let pb = progress_bar(0, cat);
-            let started = std::time::Instant::now();
-            let sources = args
-                .sources
-                .clone()
-                .unwrap_or_else(|| vec![Source::Single, Source::Boxes]);
-            let mut params = params_for(&params, &sources, args.settings.threshold.is_some());
-            let st = &args.settings;
-            if st.background_regions.is_none() && st.config.is_none() {
-                params.background_regions = COCO_BACKGROUND_REGIONS;
-            }
-            let scales_set = st.config.is_some()
-                || st.template_scale.is_some()
-                || st.template.is_some()
-                || st.levels_per_octave.is_some()
-                || st.min_scale.is_some()
-                || st.max_scale.is_some();
-            if !scales_set {
-                let sizes: Vec<(f64, f64)> = loaded
-                    .samples
-                    .iter()
-                    .filter_map(|s| s.annotation.as_ref())
-                    .map(|a| (a.bbox.2, a.bbox.3))
-                    .collect();
-                if let Some(mut p) = crate::train::small_object_scales(&sizes, &params) {
-                    // Few, small photographs: training to convergence pays
-                    // (LM-O duck, 45 photographs with true masks: 5 passes
-                    // AUC 0.256, segmentation error 0.688; converged after
-                    // 13, 0.271 and 0.426; 93 s against 155 s).
-                    if st.max_passes.is_none() {
-                        p.max_passes = SMALL_OBJECT_PASSES;
-                    }
-                    eprintln!(
-                        "{cat}: small objects: template scale {:.2} (about {:.0} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
-                        p.template_scale,
-                        p.template_scale * median_longer(&sizes) / CELL_SIZE as f64,
-                        p.pyramid.min_scale,
-                        p.pyramid.max_scale,
-                        p.pyramid.levels_per_octave,
-                        p.max_passes
-                    );
-                    params = p;
-                }
-            }
-            let samples = if args.mirror_photos {
-                pb.set_message(format!("{cat}: mirrored photographs"));
-                let views = sources.contains(&Source::Views);
-                mirror::with_mirrors(
-                    &loaded.samples,
-                    |a| !views || !a.mask_known,
-                    &cache,
-                    &params.pyramid,
-                    &params.segmentation,
-                    &pb,
-                )
-                .map_err(Failure::input)?
-            } else {
-                loaded.samples.clone()
+            let route = BoxRoute {
+                sources: args
+                    .sources
+                    .clone()
+                    .unwrap_or_else(|| vec![Source::Single, Source::Boxes]),
+                mirror_photos: args.mirror_photos,
+                box_folds: args.box_folds,
+                box_fold_rounds: args.box_fold_rounds,
             };
-            let (mut model, report, imputed) = train_coco(
+            let (model, report, _) = train_photographs(
                 cat,
-                samples.clone(),
+                &loaded.samples,
                 &extra_negatives,
-                &sources,
-                &cache,
+                &route,
+                &args.settings,
                 &params,
                 &mv,
+                &cache,
                 &pb,
-            )
-            .map_err(Failure::input)?;
-            let mut correction_seconds = None;
-            if args.box_folds >= 2 {
-                let t = std::time::Instant::now();
-                pb.set_message(format!("{cat}: box correction"));
-                // The folds start from the full training's imputation of
-                // the box-only photographs.
-                let fold_samples = with_imputed(&samples, imputed, &sources);
-                let fold_mv = MultiViewParams {
-                    latent_rounds: args.box_fold_rounds,
-                    boxes_imputed: true,
-                    ..mv.clone()
-                };
-                let (fitted, offsets) =
-                    box_correction::fit(&fold_samples, args.box_folds, &cache, |subset| {
-                        let hidden = indicatif::ProgressBar::hidden();
-                        train_coco(
-                            cat,
-                            subset,
-                            &extra_negatives,
-                            &sources,
-                            &cache,
-                            &params,
-                            &fold_mv,
-                            &hidden,
-                        )
-                        .map(|(m, _, _)| m)
-                    })
-                    .map_err(Failure::input)?;
-                match fitted {
-                    Some(c) => eprintln!(
-                        "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
-                        args.box_folds, c.samples, c.dx, c.dy, c.sw, c.sh
-                    ),
-                    None => eprintln!(
-                        "{cat}: no box correction ({} held-out detections, {} needed)",
-                        offsets.len(),
-                        box_correction::MIN_SAMPLES
-                    ),
-                }
-                model.meta.box_correction = fitted;
-                correction_seconds = Some(t.elapsed().as_secs_f64());
-            }
-            let seconds = started.elapsed().as_secs_f64();
-            match correction_seconds {
-                Some(c) => eprintln!(
-                    "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
-                    args.box_folds
-                ),
-                None => eprintln!("{cat}: trained in {seconds:.0} s"),
-            }
-            if let Some(p) = model.meta.provenance.as_object_mut() {
-                p.insert(
-                    "mirror_photos".into(),
-                    serde_json::Value::Bool(args.mirror_photos),
-                );
-            }
+            )?;
             pb.finish_and_clear();
             out.push((model, report));
         }
@@ -532,6 +427,157 @@ fn numbers<const N: usize>(o: &str, flag: &str, expected: &str) -> Result<[f64; 
 
 /// Whether `train_coco` trains `s` as a box-only photograph (latent
 /// visibility).
+/// How [`train_photographs`] trains a COCO category: its sources, and the
+/// `train --coco` options that shape it.
+pub(crate) struct BoxRoute {
+    pub(crate) sources: Vec<Source>,
+    pub(crate) mirror_photos: bool,
+    pub(crate) box_folds: usize,
+    pub(crate) box_fold_rounds: usize,
+}
+
+/// One category of photographs as `train --coco` trains it: the
+/// small-object scales where the flags leave them open, background
+/// examples, optional mirrored photographs, the structural SVM with latent
+/// boxes, then the box correction by cross-validation. `params` are the
+/// settings' (`settings` tells which the user set). Also returns the
+/// samples as the last round trained on them (box-only ones with their
+/// imputed visibility and components; mirrored ones after their
+/// originals).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn train_photographs(
+    cat: &str,
+    loaded: &[Sample],
+    extra_negatives: &[Sample],
+    route: &BoxRoute,
+    st: &TrainSettings,
+    params: &TrainParams,
+    mv: &MultiViewParams,
+    cache: &PyramidCache,
+    pb: &indicatif::ProgressBar,
+) -> Result<(Model, TrainReport, Vec<Sample>), Failure> {
+    let started = std::time::Instant::now();
+    let sources = &route.sources;
+    let mut params = params_for(params, sources, st.threshold.is_some());
+    if st.background_regions.is_none() && st.config.is_none() {
+        params.background_regions = COCO_BACKGROUND_REGIONS;
+    }
+    let scales_set = st.config.is_some()
+        || st.template_scale.is_some()
+        || st.template.is_some()
+        || st.levels_per_octave.is_some()
+        || st.min_scale.is_some()
+        || st.max_scale.is_some();
+    if !scales_set {
+        let sizes: Vec<(f64, f64)> = loaded
+            .iter()
+            .filter_map(|s| s.annotation.as_ref())
+            .map(|a| (a.bbox.2, a.bbox.3))
+            .collect();
+        if let Some(mut p) = crate::train::small_object_scales(&sizes, &params) {
+            // Few, small photographs: training to convergence pays
+            // (LM-O duck, 45 photographs with true masks: 5 passes
+            // AUC 0.256, segmentation error 0.688; converged after
+            // 13, 0.271 and 0.426; 93 s against 155 s).
+            if st.max_passes.is_none() {
+                p.max_passes = SMALL_OBJECT_PASSES;
+            }
+            eprintln!(
+                "{cat}: small objects: template scale {:.2} (about {:.0} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
+                p.template_scale,
+                p.template_scale * median_longer(&sizes) / CELL_SIZE as f64,
+                p.pyramid.min_scale,
+                p.pyramid.max_scale,
+                p.pyramid.levels_per_octave,
+                p.max_passes
+            );
+            params = p;
+        }
+    }
+    let samples = if route.mirror_photos {
+        pb.set_message(format!("{cat}: mirrored photographs"));
+        let views = sources.contains(&Source::Views);
+        mirror::with_mirrors(
+            loaded,
+            |a| !views || !a.mask_known,
+            cache,
+            &params.pyramid,
+            &params.segmentation,
+            pb,
+        )
+        .map_err(Failure::input)?
+    } else {
+        loaded.to_vec()
+    };
+    let (mut model, report, imputed) = train_coco(
+        cat,
+        samples.clone(),
+        extra_negatives,
+        sources,
+        cache,
+        &params,
+        mv,
+        pb,
+    )
+    .map_err(Failure::input)?;
+    let trained = with_imputed(&samples, imputed, sources);
+    let mut correction_seconds = None;
+    if route.box_folds >= 2 {
+        let t = std::time::Instant::now();
+        pb.set_message(format!("{cat}: box correction"));
+        // The folds start from the full training's imputation of the
+        // box-only photographs.
+        let fold_mv = MultiViewParams {
+            latent_rounds: route.box_fold_rounds,
+            boxes_imputed: true,
+            ..mv.clone()
+        };
+        let (fitted, offsets) = box_correction::fit(&trained, route.box_folds, cache, |subset| {
+            let hidden = indicatif::ProgressBar::hidden();
+            train_coco(
+                cat,
+                subset,
+                extra_negatives,
+                sources,
+                cache,
+                &params,
+                &fold_mv,
+                &hidden,
+            )
+            .map(|(m, _, _)| m)
+        })
+        .map_err(Failure::input)?;
+        match fitted {
+            Some(c) => eprintln!(
+                "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
+                route.box_folds, c.samples, c.dx, c.dy, c.sw, c.sh
+            ),
+            None => eprintln!(
+                "{cat}: no box correction ({} held-out detections, {} needed)",
+                offsets.len(),
+                box_correction::MIN_SAMPLES
+            ),
+        }
+        model.meta.box_correction = fitted;
+        correction_seconds = Some(t.elapsed().as_secs_f64());
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    match correction_seconds {
+        Some(c) => eprintln!(
+            "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
+            route.box_folds
+        ),
+        None => eprintln!("{cat}: trained in {seconds:.0} s"),
+    }
+    if let Some(p) = model.meta.provenance.as_object_mut() {
+        p.insert(
+            "mirror_photos".into(),
+            serde_json::Value::Bool(route.mirror_photos),
+        );
+    }
+    Ok((model, report, trained))
+}
+
 fn is_box_only(s: &Sample, sources: &[Source]) -> bool {
     sources.contains(&Source::Boxes) && s.annotation.as_ref().is_some_and(|a| !a.mask_known)
 }

@@ -265,6 +265,63 @@ pub fn representative_rotations(
 
 /// A `width x height` crop of a background at a random place (the
 /// background scaled up first where it is smaller), mirrored at random.
+/// A photograph of the object's scene with the object taken out: each of
+/// `boxes` `(x, y, width, height)`, grown by a tenth of its size on every
+/// side, is covered by the mirror image of the strip of the same size
+/// beside it (left, else right, above, below; where none fits, the
+/// widest part of the image beside it, stretched). Renders pasted over
+/// it meet the user's own clutter and light without a second, unlabelled
+/// instance of the object.
+pub fn without_boxes(img: &ColorImage, boxes: &[(f64, f64, f64, f64)]) -> ColorImage {
+    let (w, h) = (img.width(), img.height());
+    let mut data = img.data().to_vec();
+    for &(x, y, bw, bh) in boxes {
+        let clamp = |v: f64, hi: usize| v.round().clamp(0.0, hi as f64) as usize;
+        let (x0, y0) = (clamp(x - 0.1 * bw, w), clamp(y - 0.1 * bh, h));
+        let (x1, y1) = (clamp(x + 1.1 * bw, w), clamp(y + 1.1 * bh, h));
+        let (cw, ch) = (x1 - x0, y1 - y0);
+        if cw == 0 || ch == 0 || (cw == w && ch == h) {
+            continue;
+        }
+        // Source pixel of (px, py) inside the box: a mirror across the
+        // box's side where the strip fits, else the nearest pixel beside
+        // the box's larger free side, stretched.
+        let src = |px: usize, py: usize| -> (usize, usize) {
+            let (dx, dy) = (px - x0, py - y0);
+            if x0 >= cw {
+                (x0 - 1 - dx, py)
+            } else if x1 + cw <= w {
+                (x1 + (cw - 1 - dx), py)
+            } else if y0 >= ch {
+                (px, y0 - 1 - dy)
+            } else if y1 + ch <= h {
+                (px, y1 + (ch - 1 - dy))
+            } else if x0.max(w - x1) >= y0.max(h - y1) {
+                if x0 >= w - x1 {
+                    (dx * x0 / cw, py)
+                } else {
+                    (x1 + dx * (w - x1) / cw, py)
+                }
+            } else if y0 >= h - y1 {
+                (px, dy * y0 / ch)
+            } else {
+                (px, y1 + dy * (h - y1) / ch)
+            }
+        };
+        for py in y0..y1 {
+            for px in x0..x1 {
+                let (sx, sy) = src(px, py);
+                let (sx, sy) = (sx.min(w - 1), sy.min(h - 1));
+                for c in 0..3 {
+                    data[(py * w + px) * 3 + c] = img.get(sx, sy, c);
+                }
+            }
+        }
+    }
+    // Same size as `img`, so never empty.
+    ColorImage::new(w, h, data).unwrap_or_else(|_| img.clone())
+}
+
 fn background_crop(bg: &ColorImage, width: usize, height: usize, rng: &mut SplitMix64) -> Vec<f32> {
     let (bw, bh) = (bg.width(), bg.height());
     let scale = (width as f64 / bw as f64)
@@ -650,6 +707,43 @@ fn box_blur(data: &[f32], w: usize, h: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A box taken out of a scene: no pixel of the object is left in it,
+    /// and the pixels away from it are the scene's.
+    #[test]
+    fn without_boxes_takes_the_object_out_and_keeps_the_rest() {
+        let (w, h) = (80usize, 60usize);
+        let mut data = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                let object = (50..62).contains(&x) && (20..35).contains(&y);
+                let v = if object { 255.0 } else { (x + y) as f32 };
+                data.extend([v, v * 0.5, 10.0]);
+            }
+        }
+        let img = ColorImage::new(w, h, data).unwrap();
+        // Near the right border: the strip to its left is used.
+        let out = without_boxes(&img, &[(50.0, 20.0, 12.0, 15.0)]);
+        for y in 0..h {
+            for x in 0..w {
+                assert!(out.get(x, y, 0) < 255.0, "object left at ({x}, {y})");
+                let inside = (48..64).contains(&x) && (18..37).contains(&y);
+                if !inside {
+                    assert_eq!(out.get(x, y, 0), img.get(x, y, 0), "({x}, {y}) changed");
+                }
+            }
+        }
+        // A box as large as the image leaves it as it is; one that fits no
+        // strip beside it is still covered.
+        let whole = without_boxes(&img, &[(0.0, 0.0, 80.0, 60.0)]);
+        assert_eq!(whole.data(), img.data());
+        let wide = without_boxes(&img, &[(20.0, 15.0, 50.0, 25.0)]);
+        for y in 20..35 {
+            for x in 50..62 {
+                assert!(wide.get(x, y, 0) < 255.0, "object left at ({x}, {y})");
+            }
+        }
+    }
 
     /// A camera placed by `look_rotation` sees the origin on its optical
     /// axis, the mesh's `z` axis upwards in the image.
