@@ -11,7 +11,7 @@ use sdhop::pose::api::{estimate, MaskUsed, PoseParams};
 use sdhop::pose::geometry::Intrinsics;
 use sdhop::pose::mesh::Mesh;
 use sdhop::pose::render::background;
-use sdhop::train::mesh::{render_set, RenderParams};
+use sdhop::train::mesh::{render_set, MeshSet, RenderParams};
 use sdhop::vision::detect::{box_iou, DetectParams, Detector};
 use sdhop::vision::image::ColorImage;
 use sdhop::vision::pyramid::FeaturePyramid;
@@ -65,6 +65,53 @@ fn train_mesh(args: &[&str]) {
     );
 }
 
+/// 20 renders of `mesh` with another seed over other scenes (written to
+/// `dir`), and in how many of them `model`'s top detection is the object
+/// (IoU >= 0.5).
+fn found_in_new_renders(
+    model: &Model,
+    mesh: &Mesh,
+    colours: Option<&[[f32; 3]]>,
+    dir: &Path,
+) -> (usize, MeshSet) {
+    let others: Vec<ColorImage> = (0..3)
+        .map(|i| background(640, 480, 900 + i).unwrap())
+        .collect();
+    let test = render_set(
+        mesh,
+        colours,
+        "box",
+        &others,
+        &RenderParams {
+            renders: 20,
+            components: 1,
+            seed: 77,
+            ..RenderParams::default()
+        },
+        dir,
+        &ProgressBar::hidden(),
+    )
+    .unwrap();
+    let det = Detector::new(&model.views).unwrap();
+    let params = DetectParams {
+        threshold: -1e9,
+        max_detections: 1,
+        ..model.meta.detection
+    };
+    let mut hits = 0;
+    for s in &test.samples {
+        let img = sdhop::data::load_image(&s.image).unwrap();
+        let pyr =
+            FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
+        let (dets, _) = det.detect(&pyr, &params).unwrap();
+        let a = s.annotation.as_ref().unwrap();
+        if dets.first().is_some_and(|d| box_iou(d.bbox, a.bbox) >= 0.5) {
+            hits += 1;
+        }
+    }
+    (hits, test)
+}
+
 #[test]
 fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
     let dir = std::env::temp_dir().join(format!("sdhop-mesh-cli-{}", std::process::id()));
@@ -114,41 +161,7 @@ fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
     let mesh = Mesh::parse(&std::fs::read(&ply).unwrap()).unwrap();
     let colours = Mesh::ply_vertex_colours(&std::fs::read(&ply).unwrap()).unwrap();
     assert!(colours.is_some());
-    let others: Vec<ColorImage> = (0..3)
-        .map(|i| background(640, 480, 900 + i).unwrap())
-        .collect();
-    let test = render_set(
-        &mesh,
-        colours.as_deref(),
-        "box",
-        &others,
-        &RenderParams {
-            renders: 20,
-            components: 1,
-            seed: 77,
-            ..RenderParams::default()
-        },
-        &dir.join("test"),
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
-    let det = Detector::new(&model.views).unwrap();
-    let params = DetectParams {
-        threshold: -1e9,
-        max_detections: 1,
-        ..model.meta.detection
-    };
-    let mut hits = 0;
-    for s in &test.samples {
-        let img = sdhop::data::load_image(&s.image).unwrap();
-        let pyr =
-            FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
-        let (dets, _) = det.detect(&pyr, &params).unwrap();
-        let a = s.annotation.as_ref().unwrap();
-        if dets.first().is_some_and(|d| box_iou(d.bbox, a.bbox) >= 0.5) {
-            hits += 1;
-        }
-    }
+    let (hits, test) = found_in_new_renders(&model, &mesh, colours.as_deref(), &dir.join("test"));
     assert!(hits >= 14, "{hits} of 20 new renders found");
 
     // Pose from no start: the model's training views placed on its
@@ -530,41 +543,7 @@ fn mesh_with_box_photographs_trains_them_beside_renders_drawn_over_them() {
     // The renders were drawn over the photographs: 40 of them, each a
     // positive beside the 16 photographs.
     assert!(work.join("box_00039.jpg").is_file());
-    let others: Vec<ColorImage> = (0..3)
-        .map(|i| background(640, 480, 900 + i).unwrap())
-        .collect();
-    let test = render_set(
-        &mesh,
-        colours.as_deref(),
-        "box",
-        &others,
-        &RenderParams {
-            renders: 20,
-            components: 1,
-            seed: 77,
-            ..RenderParams::default()
-        },
-        &dir.join("test"),
-        &ProgressBar::hidden(),
-    )
-    .unwrap();
-    let det = Detector::new(&model.views).unwrap();
-    let params = DetectParams {
-        threshold: -1e9,
-        max_detections: 1,
-        ..model.meta.detection
-    };
-    let mut hits = 0;
-    for s in &test.samples {
-        let img = sdhop::data::load_image(&s.image).unwrap();
-        let pyr =
-            FeaturePyramid::build(&img, &model.meta.pyramid, &model.meta.segmentation).unwrap();
-        let (dets, _) = det.detect(&pyr, &params).unwrap();
-        let a = s.annotation.as_ref().unwrap();
-        if dets.first().is_some_and(|d| box_iou(d.bbox, a.bbox) >= 0.5) {
-            hits += 1;
-        }
-    }
+    let (hits, _) = found_in_new_renders(&model, &mesh, colours.as_deref(), &dir.join("test"));
     assert!(hits >= 14, "{hits} of 20 new renders found");
     let _ = std::fs::remove_dir_all(&dir);
 }

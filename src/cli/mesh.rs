@@ -796,9 +796,10 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-/// A model of one object trained through the views route, and each
-/// component's mean viewing direction and representative rotations.
-struct ViewsRoute {
+/// A model of one object trained through the views route or `--photos`
+/// route `boxes`, and each component's mean viewing direction and
+/// representative (start) rotations.
+struct RouteModel {
     model: Model,
     report: TrainReport,
     directions: Vec<[f64; 3]>,
@@ -820,7 +821,7 @@ fn train_from_views(
     cache: &PyramidCache,
     params: &TrainParams,
     pb: &indicatif::ProgressBar,
-) -> Result<ViewsRoute, Failure> {
+) -> Result<RouteModel, Failure> {
     let views: Vec<View> = renders
         .iter()
         .map(View::from_sample)
@@ -858,9 +859,7 @@ fn train_from_views(
     };
     let (model, mut report) =
         train_sources(&object.name, src, cache, params, &mv, pb).map_err(Failure::input)?;
-    // Each render's direction and rotation, by its id.
-    let (lo, hi) = object.mesh.bounds();
-    let centre = (lo + hi) / 2.0;
+    // Each render's component, by its id.
     let index: std::collections::HashMap<&str, usize> = renders
         .iter()
         .enumerate()
@@ -875,25 +874,8 @@ fn train_from_views(
         }
     }
     let k = report.components.len();
-    let mut directions = vec![[0.0; 3]; k];
-    for (pose, &c) in poses.iter().zip(&assign).filter(|(_, &c)| c < k) {
-        let camera = -(pose.rotation.transpose() * pose.translation);
-        let d = (camera - centre).normalize();
-        for (a, b) in directions[c].iter_mut().zip(d.iter()) {
-            *a += b;
-        }
-    }
-    for d in &mut directions {
-        let v = Vector3::from(*d);
-        *d = if v.norm() > 1e-12 {
-            v.normalize().into()
-        } else {
-            [0.0, 0.0, 1.0]
-        };
-    }
-    let rs: Vec<nalgebra::Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
-    let rotations = representative_rotations(&rs, &assign, k, ROTATIONS_PER_COMPONENT);
-    Ok(ViewsRoute {
+    let (directions, rotations) = component_viewpoints(&object.mesh, poses, &assign, k);
+    Ok(RouteModel {
         model,
         report: report.rounds.pop().unwrap_or_default(),
         directions,
@@ -948,15 +930,6 @@ impl PhotoSamples {
     }
 }
 
-/// A model trained by route `boxes`, and each component's mean viewing
-/// direction and start rotations.
-struct PhotoBoxesRoute {
-    model: Model,
-    report: TrainReport,
-    directions: Vec<[f64; 3]>,
-    rotations: Vec<Vec<[f64; 4]>>,
-}
-
 /// `--photos`, route `boxes`: the renders (drawn over the photographs)
 /// become box-labelled photographs beside the user's, and the whole set
 /// trains as `train --coco` trains box-only photographs
@@ -975,7 +948,7 @@ fn train_with_photo_boxes(
     cache: &PyramidCache,
     params: &TrainParams,
     pb: &indicatif::ProgressBar,
-) -> Result<PhotoBoxesRoute, Failure> {
+) -> Result<RouteModel, Failure> {
     use super::train::{train_photographs, BoxRoute};
     let as_boxes: Vec<Sample> = renders.iter().map(as_box_photograph).collect();
     let samples: Vec<Sample> = photos
@@ -1032,33 +1005,7 @@ fn train_with_photo_boxes(
                 .unwrap_or(usize::MAX)
         })
         .collect();
-    let (lo, hi) = mesh.bounds();
-    let centre = (lo + hi) / 2.0;
-    let toward_camera = |p: &crate::pose::Pose| {
-        let camera = -(p.rotation.transpose() * p.translation);
-        (camera - centre).normalize()
-    };
-    let mean_direction = |chosen: &dyn Fn(usize) -> bool| -> Option<[f64; 3]> {
-        let sum: Vector3<f64> = poses
-            .iter()
-            .zip(&assign)
-            .filter(|(_, &c)| chosen(c))
-            .map(|(p, _)| toward_camera(p))
-            .sum();
-        (sum.norm() > 1e-12).then(|| sum.normalize().into())
-    };
-    let rs: Vec<nalgebra::Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
-    let own = representative_rotations(&rs, &assign, k, ROTATIONS_PER_COMPONENT);
-    let all = representative_rotations(&rs, &vec![0; rs.len()], 1, ROTATIONS_PER_COMPONENT);
-    let all = all.into_iter().next().unwrap_or_default();
-    let everywhere = mean_direction(&|_| true).unwrap_or([0.0, 0.0, 1.0]);
-    let directions = (0..k)
-        .map(|c| mean_direction(&|a| a == c).unwrap_or(everywhere))
-        .collect();
-    let rotations = own
-        .into_iter()
-        .map(|r| if r.is_empty() { all.clone() } else { r })
-        .collect();
+    let (directions, rotations) = component_viewpoints(mesh, poses, &assign, k);
     let imputed = assign.iter().filter(|&&c| c < k).count();
     eprintln!(
         "{name}: {} photographs' boxes and {} renders trained together; renders per component {:?}",
@@ -1074,12 +1021,54 @@ fn train_with_photo_boxes(
             renders.len() - imputed
         );
     }
-    Ok(PhotoBoxesRoute {
+    Ok(RouteModel {
         model,
         report,
         directions,
         rotations,
     })
+}
+
+/// Each of `k` components' mean viewing direction (object towards camera,
+/// mesh frame) and representative start rotations, from the render
+/// `poses` assigned to it (`assign`; `usize::MAX` or beyond `k`: none); a
+/// component without a render gets those of all renders.
+fn component_viewpoints(
+    mesh: &Mesh,
+    poses: &[crate::pose::Pose],
+    assign: &[usize],
+    k: usize,
+) -> (Vec<[f64; 3]>, Vec<Vec<[f64; 4]>>) {
+    let (lo, hi) = mesh.bounds();
+    let centre = (lo + hi) / 2.0;
+    let toward_camera = |p: &crate::pose::Pose| {
+        let camera = -(p.rotation.transpose() * p.translation);
+        (camera - centre).normalize()
+    };
+    let mean_direction = |chosen: &dyn Fn(usize) -> bool| -> Option<[f64; 3]> {
+        let sum: Vector3<f64> = poses
+            .iter()
+            .zip(assign)
+            .filter(|(_, &c)| chosen(c))
+            .map(|(p, _)| toward_camera(p))
+            .sum();
+        (sum.norm() > 1e-12).then(|| sum.normalize().into())
+    };
+    let rs: Vec<nalgebra::Matrix3<f64>> = poses.iter().map(|p| p.rotation).collect();
+    let own = representative_rotations(&rs, assign, k, ROTATIONS_PER_COMPONENT);
+    let all = representative_rotations(&rs, &vec![0; rs.len()], 1, ROTATIONS_PER_COMPONENT)
+        .into_iter()
+        .next()
+        .unwrap_or_default();
+    let everywhere = mean_direction(&|_| true).unwrap_or([0.0, 0.0, 1.0]);
+    let directions = (0..k)
+        .map(|c| mean_direction(&|a| a == c).unwrap_or(everywhere))
+        .collect();
+    let rotations = own
+        .into_iter()
+        .map(|r| if r.is_empty() { all.clone() } else { r })
+        .collect();
+    (directions, rotations)
 }
 
 /// A render as a box-labelled photograph: its box, its visibility and
