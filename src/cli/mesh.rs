@@ -155,8 +155,9 @@ pub(crate) enum PhotoRoute {
 }
 
 /// Renders per object with `--photos`, route `boxes` (`--renders`): LM-O
-/// ape, 50 box photographs and 100 renders, AUC 0.652 against 0.601
-/// from the photographs alone (docs/training.md).
+/// ape, 50 box photographs and 100 renders, AUC 0.637 against 0.601
+/// from the photographs alone, in 14.4 min against 5.9; the cat loses
+/// (0.603 against 0.659). Fewer were not measured (docs/training.md).
 const PHOTO_RENDERS: usize = 100;
 
 /// The cells of the `--photos` routes: the learned ones (LM-O, mesh and
