@@ -34,7 +34,7 @@ for o in $objects; do
     if [ -x /usr/bin/time ]; then timer=(/usr/bin/time -v -o "$out/$name.time"); fi
     "${timer[@]}" "$bin" mesh --mesh "$data/models/obj_$id.ply" --name "$name" \
         --photos "$out/boxes.json" --work "$out/work-$name" \
-        --out "$out/models-$name/$name.safetensors" "$@" 2>&1 | grep -v '^--photos: left out' || true
+        --out "$out/models-$name/$name.safetensors" "$@" 2>&1 | grep --line-buffered -v '^--photos: left out' || true
     [ -f "$out/models-$name/$name.safetensors" ] || { echo "training $name failed" >&2; exit 1; }
     cp "$out/models-$name/$name.safetensors" "$out/models/"
     "$bin" bop-eval --data "$data" --models-dir "$out/models-$name" --train-photos "$first" \

@@ -534,6 +534,38 @@ fn mesh_with_box_photographs_trains_them_beside_renders_drawn_over_them() {
     let photos_meta = &model.meta.provenance["mesh"]["photos"];
     assert_eq!(photos_meta["route"], "boxes", "{photos_meta}");
     assert_eq!(photos_meta["boxes"], 16);
+    // The renders were drawn at the photographs' boxes' sizes.
+    let sides: Vec<f64> = photos
+        .samples
+        .iter()
+        .map(|s| {
+            let b = s.annotation.as_ref().unwrap().bbox;
+            b.2.max(b.3)
+        })
+        .collect();
+    let size = &model.meta.provenance["mesh"]["render"]["size"];
+    let lo = sides.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = sides.iter().copied().fold(0.0, f64::max);
+    assert!((size[0].as_f64().unwrap() - lo).abs() < 1e-9, "{size} {lo}");
+    assert!((size[1].as_f64().unwrap() - hi).abs() < 1e-9, "{size} {hi}");
+    // Both models were scored on the held-out photographs, and the
+    // better one kept.
+    let check = &model.meta.provenance["renders_check"];
+    let auc = |key: &str| {
+        check[key]
+            .as_f64()
+            .unwrap_or_else(|| panic!("no {key} in {check}"))
+    };
+    let (with, alone) = (
+        auc("held_out_auc_with_renders"),
+        auc("held_out_auc_photographs_alone"),
+    );
+    let kept = if with > alone {
+        "renders"
+    } else {
+        "photographs-alone"
+    };
+    assert_eq!(check["kept"], kept, "{check}");
     for v in &model.meta.viewpoints {
         assert!(!v.rotations.is_empty());
         let d = v.direction.expect("a viewing direction per component");

@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::data::load_image;
+use crate::train::box_correction::HeldOut;
 use crate::train::components::train_choosing_components;
 use crate::train::ko8::{train_object_sources, Source};
 use crate::train::multiview::{MultiViewParams, Sources};
@@ -10,6 +11,7 @@ use crate::train::views::{AugmentParams, OccluderKinds, View};
 use crate::train::{box_correction, mirror};
 use crate::train::{TrainError, TrainReport};
 use crate::vision::hog::CELL_SIZE;
+use std::collections::HashSet;
 use std::sync::Arc;
 
 #[derive(clap::Args)]
@@ -221,8 +223,9 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 mirror_photos: args.mirror_photos,
                 box_folds: args.box_folds,
                 box_fold_rounds: args.box_fold_rounds,
+                renders: Default::default(),
             };
-            let (model, report, _) = train_photographs(
+            let PhotoTraining { model, report, .. } = train_photographs(
                 cat,
                 &loaded.samples,
                 &extra_negatives,
@@ -434,16 +437,30 @@ pub(crate) struct BoxRoute {
     pub(crate) mirror_photos: bool,
     pub(crate) box_folds: usize,
     pub(crate) box_fold_rounds: usize,
+    /// Images the caller drew (renders over the photographs): they give
+    /// no background examples, stay in every box-correction fold's
+    /// training and are never held out.
+    pub(crate) renders: Arc<HashSet<PathBuf>>,
+}
+
+/// What [`train_photographs`] made.
+pub(crate) struct PhotoTraining {
+    pub(crate) model: Model,
+    pub(crate) report: TrainReport,
+    /// The samples as the last round trained on them (box-only ones with
+    /// their imputed visibility and components; mirrored ones after their
+    /// originals).
+    pub(crate) trained: Vec<Sample>,
+    /// What the box correction's fold models found on their held-out
+    /// photographs (`None` without folds).
+    pub(crate) held_out: Option<HeldOut>,
 }
 
 /// One category of photographs as `train --coco` trains it: the
 /// small-object scales where the flags leave them open, background
 /// examples, optional mirrored photographs, the structural SVM with latent
 /// boxes, then the box correction by cross-validation. `params` are the
-/// settings' (`settings` tells which the user set). Also returns the
-/// samples as the last round trained on them (box-only ones with their
-/// imputed visibility and components; mirrored ones after their
-/// originals).
+/// settings' (`settings` tells which the user set).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn train_photographs(
     cat: &str,
@@ -455,10 +472,13 @@ pub(crate) fn train_photographs(
     mv: &MultiViewParams,
     cache: &PyramidCache,
     pb: &indicatif::ProgressBar,
-) -> Result<(Model, TrainReport, Vec<Sample>), Failure> {
+) -> Result<PhotoTraining, Failure> {
     let started = std::time::Instant::now();
     let sources = &route.sources;
     let mut params = params_for(params, sources, st.threshold.is_some());
+    if !route.renders.is_empty() {
+        params.background_exclude = route.renders.clone();
+    }
     if st.background_regions.is_none() && st.config.is_none() {
         params.background_regions = COCO_BACKGROUND_REGIONS;
     }
@@ -522,6 +542,7 @@ pub(crate) fn train_photographs(
     .map_err(Failure::input)?;
     let trained = with_imputed(&samples, imputed, sources);
     let mut correction_seconds = None;
+    let mut held_out = None;
     if route.box_folds >= 2 {
         let t = std::time::Instant::now();
         pb.set_message(format!("{cat}: box correction"));
@@ -532,7 +553,7 @@ pub(crate) fn train_photographs(
             boxes_imputed: true,
             ..mv.clone()
         };
-        let (fitted, offsets) = box_correction::fit(&trained, route.box_folds, cache, |subset| {
+        let fit = box_correction::fit(&trained, route.box_folds, &route.renders, cache, |subset| {
             let hidden = indicatif::ProgressBar::hidden();
             train_coco(
                 cat,
@@ -547,6 +568,7 @@ pub(crate) fn train_photographs(
             .map(|(m, _, _)| m)
         })
         .map_err(Failure::input)?;
+        let (fitted, found) = fit;
         match fitted {
             Some(c) => eprintln!(
                 "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
@@ -554,10 +576,20 @@ pub(crate) fn train_photographs(
             ),
             None => eprintln!(
                 "{cat}: no box correction ({} held-out detections, {} needed)",
-                offsets.len(),
+                found.offsets.len(),
                 box_correction::MIN_SAMPLES
             ),
         }
+        if let Some(auc) = found.auc() {
+            eprintln!(
+                "{cat}: held out by the folds: AUC {auc:.3} on {} photographs ({} objects)",
+                found.photos, found.objects
+            );
+            if let Some(p) = model.meta.provenance.as_object_mut() {
+                p.insert("held_out_auc".into(), serde_json::json!(auc));
+            }
+        }
+        held_out = Some(found);
         model.meta.box_correction = fitted;
         correction_seconds = Some(t.elapsed().as_secs_f64());
     }
@@ -575,7 +607,12 @@ pub(crate) fn train_photographs(
             serde_json::Value::Bool(route.mirror_photos),
         );
     }
-    Ok((model, report, trained))
+    Ok(PhotoTraining {
+        model,
+        report,
+        trained,
+        held_out,
+    })
 }
 
 fn is_box_only(s: &Sample, sources: &[Source]) -> bool {

@@ -32,7 +32,7 @@ pub mod qp;
 mod search;
 pub mod views;
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
@@ -154,6 +154,11 @@ pub struct TrainParams {
     /// negatives, where the 1-slack loss of the positive itself weighs only
     /// its single most violated window. 0: none.
     pub background_regions: usize,
+    /// Positive images that give no background examples (renders drawn
+    /// over the photographs, whose regions would repeat the photographs'
+    /// own). Not saved: the provenance names the route that set it.
+    #[serde(skip)]
+    pub background_exclude: Arc<HashSet<PathBuf>>,
     /// Detection threshold saved in the model (score units; the SVM margin
     /// puts positives at >= 1 and negatives at <= -1). The default, -0.75,
     /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
@@ -190,6 +195,7 @@ impl Default for TrainParams {
             pair_mode: PairwiseMode::Grid,
             seed: 1,
             background_regions: 0,
+            background_exclude: Arc::default(),
             threshold: -0.75,
         }
     }
@@ -412,6 +418,9 @@ pub fn train_joint(
             let Some(a) = s.annotation.as_ref() else {
                 continue;
             };
+            if params.background_exclude.contains(&s.image) {
+                continue;
+            }
             match backgrounds.iter_mut().find(|(p, _)| *p == &s.image) {
                 Some((_, boxes)) => boxes.push(a.bbox),
                 None => backgrounds.push((&s.image, vec![a.bbox])),
