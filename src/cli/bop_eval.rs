@@ -95,6 +95,21 @@ struct PoseOutcome {
     angle: Option<f64>,
     seconds: f64,
     error: Option<String>,
+    /// Where it failed, stage by stage: the box IoU of the detection the
+    /// answer came from with the object's true box; the start pose's
+    /// translation error and angle; the least angle between the truth and
+    /// any start rotation of the detected component (could any start
+    /// have been near?), and of every component.
+    #[serde(default)]
+    detection_iou: Option<f64>,
+    #[serde(default)]
+    start_t_error: Option<f64>,
+    #[serde(default)]
+    start_angle: Option<f64>,
+    #[serde(default)]
+    nearest_rotation: Option<f64>,
+    #[serde(default)]
+    nearest_rotation_any: Option<f64>,
 }
 
 /// One variant's figures.
@@ -262,9 +277,45 @@ fn evaluate(
                 angle: None,
                 seconds,
                 error: None,
+                detection_iou: None,
+                start_t_error: None,
+                start_angle: None,
+                nearest_rotation: None,
+                nearest_rotation_any: None,
             };
+            // The least angle from the truth to a set of start rotations.
+            let nearest = |qs: &mut dyn Iterator<Item = &[f64; 4]>| {
+                qs.filter_map(crate::pose::start::rotation_from_quaternion)
+                    .map(|r| {
+                        let p = Pose {
+                            rotation: r,
+                            translation: truth.translation,
+                        };
+                        errors(&p, &truth, &info.symmetries_discrete).2
+                    })
+                    .min_by(f64::total_cmp)
+            };
+            let views = &model.meta.viewpoints;
+            out.nearest_rotation_any = nearest(&mut views.iter().flat_map(|v| v.rotations.iter()));
             match answer {
                 Ok(a) => {
+                    if let (Some(d), Some(b)) = (&a.detection, g.bbox_obj) {
+                        out.detection_iou = Some(box_iou(
+                            (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                            (b[0], b[1], b[2], b[3]),
+                        ));
+                        out.nearest_rotation = views
+                            .get(d.viewpoint)
+                            .and_then(|v| nearest(&mut v.rotations.iter()));
+                    }
+                    if let Some(sp) = a
+                        .start_pose
+                        .and_then(|sp| Pose::from_client(sp.rotation, sp.translation).ok())
+                    {
+                        let (_, te, angle) = errors(&sp, &truth, &info.symmetries_discrete);
+                        out.start_t_error = Some(te);
+                        out.start_angle = Some(angle);
+                    }
                     if let Ok(est) = Pose::from_client(a.pose.rotation, a.pose.translation) {
                         let symmetric = !info.symmetries_discrete.is_empty();
                         let e = if symmetric {
@@ -355,6 +406,39 @@ fn print_variant(v: &Variant) {
                 secs.get(secs.len() / 2).copied().unwrap_or(0.0)
             );
         }
+        print_pose_stages(&v.pose);
+    }
+}
+
+/// Where the pose from no start fails, stage by stage: shares of all the
+/// instances (per object and all).
+fn print_pose_stages(pose: &[PoseOutcome]) {
+    let share = |rs: &[&PoseOutcome], f: &dyn Fn(&PoseOutcome) -> bool| {
+        rs.iter().filter(|p| f(p)).count() as f64 / rs.len().max(1) as f64
+    };
+    let below = |v: Option<f64>, limit: f64| v.is_some_and(|v| v < limit);
+    println!(
+        "pose stages:        {:<10} {:>9} {:>10} {:>10} {:>10} {:>10} {:>9}",
+        "object", "det IoU.5", "near 30deg", "any 30deg", "start 30d", "start 50mm", "ADD<10%d"
+    );
+    let mut names: Vec<&str> = pose.iter().map(|p| p.object.as_str()).collect();
+    names.sort_unstable();
+    names.dedup();
+    for name in names.iter().copied().chain(std::iter::once("all")) {
+        let rs: Vec<&PoseOutcome> = pose
+            .iter()
+            .filter(|p| name == "all" || p.object == name)
+            .collect();
+        println!(
+            "                    {:<10} {:>9.3} {:>10.3} {:>10.3} {:>10.3} {:>10.3} {:>9.3}",
+            name,
+            share(&rs, &|p| p.detection_iou.is_some_and(|v| v >= 0.5)),
+            share(&rs, &|p| below(p.nearest_rotation, 30.0)),
+            share(&rs, &|p| below(p.nearest_rotation_any, 30.0)),
+            share(&rs, &|p| below(p.start_angle, 30.0)),
+            share(&rs, &|p| below(p.start_t_error, 50.0)),
+            share(&rs, &|p| p.add_ok),
+        );
     }
 }
 
