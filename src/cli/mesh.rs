@@ -111,12 +111,11 @@ pub(crate) struct MeshArgs {
     /// file whose boxes of the category named `--name` are the object's
     /// full extent (no masks needed; `file_name`s relative to the file's
     /// folder; `iscrowd` boxes are ignored), e.g. from
-    /// `lmo_boxes_coco.py`. The renders train first; then each box's
-    /// component and visible cells are imputed under the model (latent,
-    /// `--latent-rounds` times) and the model retrains on renders and
-    /// boxes together. The photographs' places outside the boxes are hard
-    /// negatives, and photographs without the object are negatives. One
-    /// object per model.
+    /// `lmo_boxes_coco.py`. Renders and boxes train together (see
+    /// `--photo-route`); each box's component and visible cells are
+    /// imputed under the model (latent, `--latent-rounds` times). The
+    /// photographs' places outside the boxes are hard negatives, and
+    /// photographs without the object are negatives. One object per model.
     #[arg(long, conflicts_with = "from_views")]
     pub(crate) photos: Option<PathBuf>,
     /// With `--photos`: how renders and photographs train together.
@@ -148,8 +147,8 @@ pub(crate) struct MeshArgs {
     /// from the photographs alone, and the model that finds more on the
     /// photographs the box correction's folds held out (AUC, recall
     /// against false positives per image) is kept: renders only stay where
-    /// they help. The check doubles nothing but the photographs' own
-    /// training (box-only training is the faster of the two).
+    /// they help. The check adds the photographs-alone training (LM-O ape:
+    /// 5.7 of 23 minutes).
     #[arg(long, requires = "photos")]
     pub(crate) keep_renders: bool,
     #[command(flatten)]
@@ -167,9 +166,10 @@ pub(crate) enum PhotoRoute {
 }
 
 /// Renders per object with `--photos`, route `boxes` (`--renders`): LM-O
-/// ape, 50 box photographs and 100 renders, AUC 0.637 against 0.601
-/// from the photographs alone, in 14.4 min against 5.9; the cat loses
-/// (0.603 against 0.659). Fewer were not measured (docs/training.md).
+/// ape, 50 box photographs and 100 renders at the photographs' sizes,
+/// AUC 0.650 against 0.601 from the photographs alone, in 23 min against
+/// 5.9; the cat's held-out folds keep the photographs alone. Fewer were
+/// not measured (docs/training.md).
 const PHOTO_RENDERS: usize = 100;
 
 /// The cells of the `--photos` routes: the learned ones (LM-O, mesh and

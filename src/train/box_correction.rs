@@ -83,7 +83,8 @@ pub fn held_out(
     };
     let labels: BTreeSet<&str> = m.viewpoints.iter().map(|v| v.label.as_str()).collect();
     // Each photograph once, with the boxes of its objects.
-    let mut images: Vec<(&PathBuf, Vec<(f64, f64, f64, f64)>)> = Vec::new();
+    type PixelBox = (f64, f64, f64, f64);
+    let mut images: Vec<(&PathBuf, Vec<PixelBox>)> = Vec::new();
     for s in photos {
         let boxes = s
             .annotation
