@@ -1006,18 +1006,21 @@ fn train_with_photo_boxes(
         latent_visibility: args.photo_visibility == PhotoVisibility::Latent,
         ..MultiViewParams::default()
     };
+    let train = |samples: &[Sample], renders: &[Sample]| {
+        train_photographs(
+            name,
+            samples,
+            negatives,
+            &route(renders),
+            &args.settings,
+            params,
+            &mv,
+            cache,
+            pb,
+        )
+    };
     pb.set_message(format!("{name}: photographs and renders"));
-    let with = train_photographs(
-        name,
-        &samples,
-        negatives,
-        &route(&as_boxes),
-        &args.settings,
-        params,
-        &mv,
-        cache,
-        pb,
-    )?;
+    let with = train(&samples, &as_boxes)?;
     let auc = |t: &super::train::PhotoTraining| t.held_out.as_ref().and_then(|h| h.auc());
     let mut check = serde_json::Value::Null;
     let chosen = if args.keep_renders {
@@ -1030,17 +1033,7 @@ fn train_with_photo_boxes(
             .chain(&photos.negatives)
             .cloned()
             .collect();
-        let alone = train_photographs(
-            name,
-            &alone_samples,
-            negatives,
-            &route(&[]),
-            &args.settings,
-            params,
-            &mv,
-            cache,
-            pb,
-        )?;
+        let alone = train(&alone_samples, &[])?;
         let (a, b) = (auc(&with), auc(&alone));
         let keep_renders = match (a, b) {
             (Some(a), Some(b)) => a > b,
