@@ -70,20 +70,45 @@ impl ColourModel {
             }
         }
         let dist = super::distance::MaskDistance::new(&coverage);
+        Self::from_regions(img, (0, 0, w, h), |x, y| {
+            let d = dist.distance(x, y);
+            if d == 0 {
+                visible.is_none_or(|m| m.get(x, y)).then_some(true)
+            } else {
+                (d <= band).then_some(false)
+            }
+        })
+    }
+
+    /// The model from the pixels of the window `(x, y, width, height)`
+    /// (clipped to the image) that `label` calls the object's (`Some(true)`)
+    /// or the background's (`Some(false)`). `None` when either has fewer
+    /// than [`MIN_PIXELS`].
+    pub fn from_regions(
+        img: &ColorImage,
+        window: (usize, usize, usize, usize),
+        label: impl Fn(usize, usize) -> Option<bool>,
+    ) -> Option<Self> {
+        let (x0, y0) = (window.0.min(img.width()), window.1.min(img.height()));
+        let (x1, y1) = (
+            (x0 + window.2).min(img.width()),
+            (y0 + window.3).min(img.height()),
+        );
         let n = BINS * BINS * BINS;
         let (mut fg, mut bg) = (vec![0u32; n], vec![0u32; n]);
         let (mut nf, mut nb) = (0usize, 0usize);
-        for y in 0..h {
-            for x in 0..w {
-                let d = dist.distance(x, y);
-                if d == 0 {
-                    if visible.is_none_or(|m| m.get(x, y)) {
+        for y in y0..y1 {
+            for x in x0..x1 {
+                match label(x, y) {
+                    Some(true) => {
                         fg[bin(img, x, y)] += 1;
                         nf += 1;
                     }
-                } else if d <= band {
-                    bg[bin(img, x, y)] += 1;
-                    nb += 1;
+                    Some(false) => {
+                        bg[bin(img, x, y)] += 1;
+                        nb += 1;
+                    }
+                    None => {}
                 }
             }
         }
@@ -112,6 +137,14 @@ impl ColourModel {
         }
         let (x, y) = (p.x as usize, p.y as usize);
         (x < img.width() && y < img.height()).then(|| f64::from(self.posterior[bin(img, x, y)]))
+    }
+
+    /// The log-odds `ln(p / (1 - p))` that the pixel `(x, y)` shows the
+    /// object, `p` clamped to `[FLOOR, 1 - FLOOR]` as in [`Self::step`]
+    /// (the caller keeps `(x, y)` in the image).
+    pub fn log_odds(&self, img: &ColorImage, x: usize, y: usize) -> f64 {
+        let p = f64::from(self.posterior[bin(img, x, y)]).clamp(FLOOR, 1.0 - FLOOR);
+        (p / (1.0 - p)).ln()
     }
 
     /// The distribution of the outline's place along the line through

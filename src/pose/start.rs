@@ -3,15 +3,18 @@
 //! (learned from the mesh's training renders, see
 //! [`crate::model::ViewMeta::rotations`]) placed so that the mesh's
 //! projected box matches the detection's full-extent box, then ranked by
-//! how well the silhouette at that pose agrees with the detection's
-//! visible mask.
+//! the image's colours about the detection ([`start_poses_by_colour`]),
+//! or where those tell nothing apart by how well the silhouette at that
+//! pose agrees with the detection's visible mask ([`start_poses`]).
 
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
 use super::edges::rasterize;
 use super::geometry::{projected_box, Intrinsics, Pose};
 use super::mesh::Mesh;
+use super::region::ColourModel;
 use super::PoseError;
+use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::Deadline;
 
@@ -186,6 +189,212 @@ pub fn start_poses(
     Ok(out)
 }
 
+/// Shifts of a start about its place on the detection's box, each way, as
+/// shares of the box's longer side: a detection's box is a template's,
+/// off by a cell or two.
+pub const SHIFTS: [f64; 5] = [-0.1, -0.05, 0.0, 0.05, 0.1];
+
+/// How far the window of [`start_poses_by_colour`] reaches past the
+/// detection's box, as a share of the box's longer side.
+const COLOUR_MARGIN: f64 = 0.5;
+
+/// The least difference of the mean log-odds of showing the object
+/// between the mask's pixels and those around the box for
+/// [`start_poses_by_colour`] to rank by colour.
+const MIN_COLOUR_CONTRAST: f64 = 0.5;
+
+/// The detection's box grown by `margin` of its longer side each way and
+/// clipped to a `width` x `height` image: `(x0, y0, x1, y1)`, exclusive.
+fn grown_box(
+    bbox: (f64, f64, f64, f64),
+    margin: f64,
+    width: usize,
+    height: usize,
+) -> (usize, usize, usize, usize) {
+    let (bx, by, bw, bh) = bbox;
+    let g = margin * bw.max(bh);
+    let clip = |v: f64, hi: usize| (v.max(0.0) as usize).min(hi);
+    (
+        clip((bx - g).floor(), width),
+        clip((by - g).floor(), height),
+        clip((bx + bw + g).ceil(), width),
+        clip((by + bh + g).ceil(), height),
+    )
+}
+
+/// The start poses of a detection ranked by its colours, as the
+/// region-based trackers score a pose (PWP3D, RBOT): the object's colours
+/// are those of the detection's visible `mask` inside its box, the
+/// background's those around the box, and a pose scores the sum over its
+/// silhouette of each pixel's log-odds of showing the object (so a
+/// silhouette gains where it covers the object's colours and loses where
+/// it covers the background's). Every rotation of `rotations` is placed
+/// on the box by [`pose_for_box`], then moved along its ray by the
+/// [`DEPTH_FACTORS`] and across it by the [`SHIFTS`] (the silhouette
+/// scaled and shifted in the image); each rotation keeps its best place,
+/// and the best `keep` rotations are returned, best first. `None` when the
+/// colours cannot be told apart (too few pixels of either).
+#[allow(clippy::too_many_arguments)]
+pub fn start_poses_by_colour(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    img: &ColorImage,
+    bbox: (f64, f64, f64, f64),
+    mask: &Mask,
+    rotations: &[[f64; 4]],
+    keep: usize,
+    deadline: &Deadline,
+) -> Result<Option<Vec<Start>>, PoseError> {
+    let (w, h) = (img.width(), img.height());
+    let (bx, by, bw, bh) = bbox;
+    let side = bw.max(bh);
+    let (x0, y0, x1, y1) = grown_box(bbox, COLOUR_MARGIN, w, h);
+    if x1 <= x0 || y1 <= y0 || (mask.width, mask.height) != (w, h) {
+        return Ok(None);
+    }
+    let inner = grown_box(bbox, 0.1, w, h);
+    let in_box = |x: usize, y: usize| {
+        let (fx, fy) = (x as f64 + 0.5, y as f64 + 0.5);
+        fx >= bx && fx < bx + bw && fy >= by && fy < by + bh
+    };
+    let Some(colour) = ColourModel::from_regions(img, (x0, y0, x1 - x0, y1 - y0), |x, y| {
+        if in_box(x, y) {
+            mask.get(x, y).then_some(true)
+        } else if x < inner.0 || x >= inner.2 || y < inner.1 || y >= inner.3 {
+            Some(false)
+        } else {
+            None
+        }
+    }) else {
+        return Ok(None);
+    };
+    let rw = x1 - x0;
+    let odds: Vec<f32> = (y0..y1)
+        .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+        .map(|(x, y)| colour.log_odds(img, x, y) as f32)
+        .collect();
+    // Colours that do not tell the mask from the background rank nothing.
+    let (mut inside, mut outside) = ((0.0, 0usize), (0.0, 0usize));
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let o = f64::from(odds[(y - y0) * rw + (x - x0)]);
+            if in_box(x, y) && mask.get(x, y) {
+                inside = (inside.0 + o, inside.1 + 1);
+            } else if !in_box(x, y) {
+                outside = (outside.0 + o, outside.1 + 1);
+            }
+        }
+    }
+    let mean = |(s, n): (f64, usize)| s / n.max(1) as f64;
+    if mean(inside) - mean(outside) < MIN_COLOUR_CONTRAST {
+        return Ok(None);
+    }
+    // The log-odds at image point (u, v); nothing outside the window.
+    let at = |u: f64, v: f64| -> f64 {
+        if u < x0 as f64 || v < y0 as f64 {
+            return 0.0;
+        }
+        let (x, y) = (u as usize, v as usize);
+        if x >= x1 || y >= y1 {
+            return 0.0;
+        }
+        f64::from(odds[(y - y0) * rw + (x - x0)])
+    };
+    let centre = mesh_centre(mesh);
+    let mut out = Vec::with_capacity(rotations.len());
+    for q in rotations {
+        if deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
+        let Some(r) = rotation_from_quaternion(q) else {
+            continue;
+        };
+        let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) else {
+            continue;
+        };
+        let centre_cam = pose.translation + r * centre;
+        let Some(c) = k.project(&centre_cam) else {
+            continue;
+        };
+        let raster = rasterize(
+            &mesh.vertices,
+            &mesh.triangles,
+            k,
+            &pose,
+            w,
+            h,
+            false,
+            deadline,
+        )?;
+        // The silhouette's pixels, about the projected centre.
+        let (sx0, sy0, sx1, sy1) = grown_box(bbox, 0.05, w, h);
+        let pixels: Vec<(f64, f64)> = (sy0..sy1)
+            .flat_map(|y| (sx0..sx1).map(move |x| (x, y)))
+            .filter(|&(x, y)| raster.covered(x, y))
+            .map(|(x, y)| (x as f64 + 0.5 - c.x, y as f64 + 0.5 - c.y))
+            .collect();
+        if pixels.is_empty() {
+            continue;
+        }
+        // The silhouette farther by `f` (shrunk by 1/f about its centre,
+        // each pixel standing for (1/f)^2 of the image's) and centred on
+        // (u, v).
+        let score_at = |f: f64, u: f64, v: f64| {
+            let s = 1.0 / f;
+            s * s
+                * pixels
+                    .iter()
+                    .map(|&(ox, oy)| at(u + s * ox, v + s * oy))
+                    .sum::<f64>()
+        };
+        let mut best: Option<(f64, f64, f64, f64)> = None;
+        let keep_best = |best: &mut Option<(f64, f64, f64, f64)>, f: f64, u: f64, v: f64| {
+            let score = score_at(f, u, v);
+            if best.is_none_or(|b| score > b.0) {
+                *best = Some((score, f, u, v));
+            }
+        };
+        for f in DEPTH_FACTORS {
+            for dy in SHIFTS {
+                for dx in SHIFTS {
+                    keep_best(&mut best, f, c.x + dx * side, c.y + dy * side);
+                }
+            }
+        }
+        // Then finer about the best: steps of a seventh of the coarse ones.
+        if let Some((_, f0, u0, v0)) = best {
+            for i in -3..=3 {
+                for dy in -2..=2 {
+                    for dx in -2..=2 {
+                        let step = (SHIFTS[1] - SHIFTS[0]) / 4.0 * side;
+                        keep_best(
+                            &mut best,
+                            f0 * (1.0 + 0.015 * f64::from(i)),
+                            u0 + f64::from(dx) * step,
+                            v0 + f64::from(dy) * step,
+                        );
+                    }
+                }
+            }
+        }
+        let Some((score, f, u, v)) = best else {
+            continue;
+        };
+        let z = centre_cam.z * f;
+        let moved = Vector3::new((u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z);
+        out.push(Start {
+            pose: Pose {
+                rotation: r,
+                translation: moved - r * centre,
+            },
+            agreement: score,
+        });
+    }
+    out.sort_by(|a, b| b.agreement.total_cmp(&a.agreement));
+    out.truncate(keep);
+    Ok(Some(out))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -265,5 +474,92 @@ mod tests {
         assert!(starts[0].agreement > 0.95, "{:?}", starts[0]);
         assert!((starts[0].pose.rotation - truth.rotation).norm() < 1e-9);
         assert!(starts[1].agreement < starts[0].agreement);
+    }
+
+    /// On an image whose object has its own colour, a coarse mask (the
+    /// silhouette's cells of 8 pixels) and a box shifted and grown as a
+    /// detection's would be, the true rotation ranks first by colour and
+    /// lands near the true place and depth.
+    #[test]
+    fn the_true_rotation_ranks_first_by_colour() {
+        let mesh = Mesh::cuboid(80.0, 30.0, 20.0);
+        let rot = |a: f64, b: f64, c: f64| {
+            let r = nalgebra::Rotation3::from_euler_angles(a, b, c);
+            let q = UnitQuaternion::from_rotation_matrix(&r);
+            [q.w, q.i, q.j, q.k]
+        };
+        let truth_q = rot(0.3, 0.2, 0.9);
+        let truth = Pose {
+            rotation: rotation_from_quaternion(&truth_q).unwrap(),
+            translation: Vector3::new(10.0, -5.0, 500.0),
+        };
+        let (w, h) = (640, 480);
+        let raster = rasterize(
+            &mesh.vertices,
+            &mesh.triangles,
+            &k(),
+            &truth,
+            w,
+            h,
+            false,
+            &Deadline::NONE,
+        )
+        .unwrap();
+        let mut data = Vec::with_capacity(w * h * 3);
+        let mut coarse = Mask::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                // A checkerboard of greys behind a red object.
+                let on = raster.covered(x, y);
+                let g = if (x / 7 + y / 5) % 2 == 0 {
+                    60.0
+                } else {
+                    190.0
+                };
+                data.extend(if on { [200.0, 30.0, 40.0] } else { [g, g, g] });
+                let (cx, cy) = (x / 8 * 8 + 4, y / 8 * 8 + 4);
+                coarse.set(x, y, raster.covered(cx.min(w - 1), cy.min(h - 1)));
+            }
+        }
+        let img = ColorImage::new(w, h, data).unwrap();
+        let (bx, by, bw, bh) = projected_box(&mesh.vertices, &k(), &truth).unwrap();
+        let detected = (bx + 0.06 * bw, by - 0.04 * bh, bw * 1.1, bh * 1.05);
+        let rotations = [
+            rot(0.3, 0.2, 0.0),
+            rot(1.2, 0.2, 0.9),
+            truth_q,
+            rot(0.3, 1.0, -0.5),
+        ];
+        let starts = start_poses_by_colour(
+            &mesh,
+            &k(),
+            &img,
+            detected,
+            &coarse,
+            &rotations,
+            2,
+            &Deadline::NONE,
+        )
+        .unwrap()
+        .expect("the colours differ");
+        assert_eq!(starts.len(), 2);
+        assert!((starts[0].pose.rotation - truth.rotation).norm() < 1e-9);
+        assert!(starts[1].agreement < starts[0].agreement);
+        let off = starts[0].pose.translation - truth.translation;
+        assert!(off.norm() < 30.0, "{off:?}");
+        // One colour everywhere: nothing to rank by.
+        let flat = ColorImage::new(w, h, vec![100.0; w * h * 3]).unwrap();
+        let none = start_poses_by_colour(
+            &mesh,
+            &k(),
+            &flat,
+            detected,
+            &coarse,
+            &rotations,
+            2,
+            &Deadline::NONE,
+        )
+        .unwrap();
+        assert!(none.is_none(), "{none:?}");
     }
 }
