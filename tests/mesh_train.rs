@@ -566,6 +566,14 @@ fn mesh_with_box_photographs_trains_them_beside_renders_drawn_over_them() {
         "photographs-alone"
     };
     assert_eq!(check["kept"], kept, "{check}");
+    // The kept model carries its own folds' figure (the photographs
+    // alone are checked by their folds before their full training).
+    assert_eq!(
+        model.meta.provenance["held_out_auc"].as_f64(),
+        Some(with.max(alone)),
+        "{}",
+        model.meta.provenance
+    );
     for v in &model.meta.viewpoints {
         assert!(!v.rotations.is_empty());
         let d = v.direction.expect("a viewing direction per component");

@@ -979,7 +979,7 @@ fn train_with_photo_boxes(
     params: &TrainParams,
     pb: &indicatif::ProgressBar,
 ) -> Result<RouteModel, Failure> {
-    use super::train::{train_photographs, BoxRoute};
+    use super::train::{fold_check, photo_params, train_photographs, BoxRoute};
     let as_boxes: Vec<Sample> = renders.iter().map(as_box_photograph).collect();
     let samples: Vec<Sample> = photos
         .boxes
@@ -1006,12 +1006,12 @@ fn train_with_photo_boxes(
         latent_visibility: args.photo_visibility == PhotoVisibility::Latent,
         ..MultiViewParams::default()
     };
-    let train = |samples: &[Sample], renders: &[Sample]| {
+    let train = |samples: &[Sample], route: &BoxRoute| {
         train_photographs(
             name,
             samples,
             negatives,
-            &route(renders),
+            route,
             &args.settings,
             params,
             &mv,
@@ -1020,21 +1020,43 @@ fn train_with_photo_boxes(
         )
     };
     pb.set_message(format!("{name}: photographs and renders"));
-    let with = train(&samples, &as_boxes)?;
-    let auc = |t: &super::train::PhotoTraining| t.held_out.as_ref().and_then(|h| h.auc());
+    let with = train(&samples, &route(&as_boxes))?;
     let mut check = serde_json::Value::Null;
     let chosen = if args.keep_renders {
         with
     } else {
-        pb.set_message(format!("{name}: photographs alone"));
+        // The check: the photographs alone by the box correction's folds
+        // first, each box as the model with the renders imputed it; the
+        // photographs-alone model is trained in full only when it wins.
+        pb.set_message(format!("{name}: photographs alone, by the folds"));
         let alone_samples: Vec<Sample> = photos
             .boxes
             .iter()
             .chain(&photos.negatives)
             .cloned()
             .collect();
-        let alone = train(&alone_samples, &[])?;
-        let (a, b) = (auc(&with), auc(&alone));
+        let alone_route = route(&[]);
+        let drawn = route(&as_boxes).renders;
+        let alone_trained: Vec<Sample> = with
+            .trained
+            .iter()
+            .filter(|s| !drawn.contains(&s.image))
+            .cloned()
+            .collect();
+        let alone_params = photo_params(name, &alone_samples, &alone_route, &args.settings, params);
+        let (alone_fit, alone_found) = fold_check(
+            name,
+            &alone_trained,
+            negatives,
+            &alone_route,
+            &alone_params,
+            &mv,
+            cache,
+        )?;
+        let (a, b) = (
+            with.held_out.as_ref().and_then(|h| h.auc()),
+            alone_found.auc(),
+        );
         let keep_renders = match (a, b) {
             (Some(a), Some(b)) => a > b,
             _ => true,
@@ -1054,6 +1076,21 @@ fn train_with_photo_boxes(
         if keep_renders {
             with
         } else {
+            pb.set_message(format!("{name}: photographs alone"));
+            // Its folds ran above: the full training alone, then their
+            // correction.
+            let mut alone = train(
+                &alone_samples,
+                &BoxRoute {
+                    box_folds: 0,
+                    ..alone_route
+                },
+            )?;
+            alone.model.meta.box_correction = alone_fit;
+            if let (Some(auc), Some(p)) = (b, alone.model.meta.provenance.as_object_mut()) {
+                p.insert("held_out_auc".into(), serde_json::json!(auc));
+            }
+            alone.held_out = Some(alone_found);
             alone
         }
     };

@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::data::load_image;
+use crate::model::BoxCorrection;
 use crate::train::box_correction::HeldOut;
 use crate::train::components::train_choosing_components;
 use crate::train::ko8::{train_object_sources, Source};
@@ -428,8 +429,6 @@ fn numbers<const N: usize>(o: &str, flag: &str, expected: &str) -> Result<[f64; 
         .map_err(|_| Failure::input(format!("{flag} {o:?}: expected {expected}")))
 }
 
-/// Whether `train_coco` trains `s` as a box-only photograph (latent
-/// visibility).
 /// How [`train_photographs`] trains a COCO category: its sources, and the
 /// `train --coco` options that shape it.
 pub(crate) struct BoxRoute {
@@ -475,7 +474,81 @@ pub(crate) fn train_photographs(
 ) -> Result<PhotoTraining, Failure> {
     let started = std::time::Instant::now();
     let sources = &route.sources;
-    let mut params = params_for(params, sources, st.threshold.is_some());
+    let params = photo_params(cat, loaded, route, st, params);
+    let samples = if route.mirror_photos {
+        pb.set_message(format!("{cat}: mirrored photographs"));
+        let views = sources.contains(&Source::Views);
+        mirror::with_mirrors(
+            loaded,
+            |a| !views || !a.mask_known,
+            cache,
+            &params.pyramid,
+            &params.segmentation,
+            pb,
+        )
+        .map_err(Failure::input)?
+    } else {
+        loaded.to_vec()
+    };
+    let (mut model, report, imputed) = train_coco(
+        cat,
+        samples.clone(),
+        extra_negatives,
+        sources,
+        cache,
+        &params,
+        mv,
+        pb,
+    )
+    .map_err(Failure::input)?;
+    let trained = with_imputed(&samples, imputed, sources);
+    let mut correction_seconds = None;
+    let mut held_out = None;
+    if route.box_folds >= 2 {
+        let t = std::time::Instant::now();
+        pb.set_message(format!("{cat}: box correction"));
+        let (fitted, found) =
+            fold_check(cat, &trained, extra_negatives, route, &params, mv, cache)?;
+        if let (Some(auc), Some(p)) = (found.auc(), model.meta.provenance.as_object_mut()) {
+            p.insert("held_out_auc".into(), serde_json::json!(auc));
+        }
+        held_out = Some(found);
+        model.meta.box_correction = fitted;
+        correction_seconds = Some(t.elapsed().as_secs_f64());
+    }
+    let seconds = started.elapsed().as_secs_f64();
+    match correction_seconds {
+        Some(c) => eprintln!(
+            "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
+            route.box_folds
+        ),
+        None => eprintln!("{cat}: trained in {seconds:.0} s"),
+    }
+    if let Some(p) = model.meta.provenance.as_object_mut() {
+        p.insert(
+            "mirror_photos".into(),
+            serde_json::Value::Bool(route.mirror_photos),
+        );
+    }
+    Ok(PhotoTraining {
+        model,
+        report,
+        trained,
+        held_out,
+    })
+}
+
+/// The training settings of [`train_photographs`] for `loaded`: the
+/// route's sources, background examples (none from the route's renders),
+/// and the small-object scales where the flags leave them open.
+pub(crate) fn photo_params(
+    cat: &str,
+    loaded: &[Sample],
+    route: &BoxRoute,
+    st: &TrainSettings,
+    params: &TrainParams,
+) -> TrainParams {
+    let mut params = params_for(params, &route.sources, st.threshold.is_some());
     if !route.renders.is_empty() {
         params.background_exclude = route.renders.clone();
     }
@@ -514,107 +587,69 @@ pub(crate) fn train_photographs(
             params = p;
         }
     }
-    let samples = if route.mirror_photos {
-        pb.set_message(format!("{cat}: mirrored photographs"));
-        let views = sources.contains(&Source::Views);
-        mirror::with_mirrors(
-            loaded,
-            |a| !views || !a.mask_known,
-            cache,
-            &params.pyramid,
-            &params.segmentation,
-            pb,
-        )
-        .map_err(Failure::input)?
-    } else {
-        loaded.to_vec()
+    params
+}
+
+/// The box correction's `route.box_folds`-fold cross-validation over the
+/// photographs of `trained` (each box with the visibility and component
+/// a full training imputed to it; the route's renders are never held
+/// out): the correction fitted to the held-out detections, and what the
+/// fold models found on their held-out photographs (its AUC is the
+/// route's check of a training). `params` as [`photo_params`] gives them.
+pub(crate) fn fold_check(
+    cat: &str,
+    trained: &[Sample],
+    extra_negatives: &[Sample],
+    route: &BoxRoute,
+    params: &TrainParams,
+    mv: &MultiViewParams,
+    cache: &PyramidCache,
+) -> Result<(Option<BoxCorrection>, HeldOut), Failure> {
+    // The folds start from the full training's imputation of the
+    // box-only photographs.
+    let fold_mv = MultiViewParams {
+        latent_rounds: route.box_fold_rounds,
+        boxes_imputed: true,
+        ..mv.clone()
     };
-    let (mut model, report, imputed) = train_coco(
-        cat,
-        samples.clone(),
-        extra_negatives,
-        sources,
-        cache,
-        &params,
-        mv,
-        pb,
-    )
-    .map_err(Failure::input)?;
-    let trained = with_imputed(&samples, imputed, sources);
-    let mut correction_seconds = None;
-    let mut held_out = None;
-    if route.box_folds >= 2 {
-        let t = std::time::Instant::now();
-        pb.set_message(format!("{cat}: box correction"));
-        // The folds start from the full training's imputation of the
-        // box-only photographs.
-        let fold_mv = MultiViewParams {
-            latent_rounds: route.box_fold_rounds,
-            boxes_imputed: true,
-            ..mv.clone()
-        };
-        let fit = box_correction::fit(&trained, route.box_folds, &route.renders, cache, |subset| {
+    let (fitted, found) =
+        box_correction::fit(trained, route.box_folds, &route.renders, cache, |subset| {
             let hidden = indicatif::ProgressBar::hidden();
             train_coco(
                 cat,
                 subset,
                 extra_negatives,
-                sources,
+                &route.sources,
                 cache,
-                &params,
+                params,
                 &fold_mv,
                 &hidden,
             )
             .map(|(m, _, _)| m)
         })
         .map_err(Failure::input)?;
-        let (fitted, found) = fit;
-        match fitted {
-            Some(c) => eprintln!(
-                "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
-                route.box_folds, c.samples, c.dx, c.dy, c.sw, c.sh
-            ),
-            None => eprintln!(
-                "{cat}: no box correction ({} held-out detections, {} needed)",
-                found.offsets.len(),
-                box_correction::MIN_SAMPLES
-            ),
-        }
-        if let Some(auc) = found.auc() {
-            eprintln!(
-                "{cat}: held out by the folds: AUC {auc:.3} on {} photographs ({} objects)",
-                found.photos, found.objects
-            );
-            if let Some(p) = model.meta.provenance.as_object_mut() {
-                p.insert("held_out_auc".into(), serde_json::json!(auc));
-            }
-        }
-        held_out = Some(found);
-        model.meta.box_correction = fitted;
-        correction_seconds = Some(t.elapsed().as_secs_f64());
-    }
-    let seconds = started.elapsed().as_secs_f64();
-    match correction_seconds {
+    match &fitted {
         Some(c) => eprintln!(
-            "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
-            route.box_folds
+            "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
+            route.box_folds, c.samples, c.dx, c.dy, c.sw, c.sh
         ),
-        None => eprintln!("{cat}: trained in {seconds:.0} s"),
+        None => eprintln!(
+            "{cat}: no box correction ({} held-out detections, {} needed)",
+            found.offsets.len(),
+            box_correction::MIN_SAMPLES
+        ),
     }
-    if let Some(p) = model.meta.provenance.as_object_mut() {
-        p.insert(
-            "mirror_photos".into(),
-            serde_json::Value::Bool(route.mirror_photos),
+    if let Some(auc) = found.auc() {
+        eprintln!(
+            "{cat}: held out by the folds: AUC {auc:.3} on {} photographs ({} objects)",
+            found.photos, found.objects
         );
     }
-    Ok(PhotoTraining {
-        model,
-        report,
-        trained,
-        held_out,
-    })
+    Ok((fitted, found))
 }
 
+/// Whether `train_coco` trains `s` as a box-only photograph (latent
+/// visibility).
 fn is_box_only(s: &Sample, sources: &[Source]) -> bool {
     sources.contains(&Source::Boxes) && s.annotation.as_ref().is_some_and(|a| !a.mask_known)
 }
