@@ -53,6 +53,9 @@ impl DroppedFaces {
 pub struct Mesh {
     pub vertices: Vec<Vector3<f64>>,
     pub triangles: Vec<[u32; 3]>,
+    /// The vertices' colours (0-255), one per vertex, where the file has
+    /// them (PLY `red`, `green`, `blue`).
+    pub colours: Option<Vec<[f32; 3]>>,
 }
 
 fn bad(msg: impl Into<String>) -> PoseError {
@@ -74,6 +77,15 @@ impl Mesh {
         }
         if self.triangles.is_empty() {
             return Err(bad("the mesh has no triangles"));
+        }
+        if let Some(c) = &self.colours {
+            if c.len() != self.vertices.len() {
+                return Err(bad(format!(
+                    "{} vertex colours for {} vertices",
+                    c.len(),
+                    self.vertices.len()
+                )));
+            }
         }
         if let Some(i) = self
             .vertices
@@ -210,6 +222,7 @@ impl Mesh {
         Self {
             vertices,
             triangles,
+            colours: None,
         }
     }
 
@@ -274,6 +287,7 @@ impl Mesh {
         Self {
             vertices,
             triangles,
+            colours: None,
         }
     }
 
@@ -301,9 +315,14 @@ impl Mesh {
             let mut mid: std::collections::HashMap<(u32, u32), u32> =
                 std::collections::HashMap::new();
             let mut vertices = mesh.vertices.clone();
+            let mut colours = mesh.colours.clone();
             let mut midpoint = |a: u32, b: u32| {
                 *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
                     vertices.push((mesh.vertices[a as usize] + mesh.vertices[b as usize]) / 2.0);
+                    if let Some(c) = colours.as_mut() {
+                        let (ca, cb) = (c[a as usize], c[b as usize]);
+                        c.push([0, 1, 2].map(|i| (ca[i] + cb[i]) / 2.0));
+                    }
                     (vertices.len() - 1) as u32
                 })
             };
@@ -315,6 +334,7 @@ impl Mesh {
             mesh = Self {
                 vertices,
                 triangles,
+                colours,
             };
         }
         mesh
@@ -452,6 +472,7 @@ mod tests {
         let flat = Mesh {
             vertices: vec![Vector3::zeros(), Vector3::x(), Vector3::x() * 2.0],
             triangles: vec![[0, 1, 2]],
+            colours: None,
         };
         assert!(Mesh::parse(flat.to_obj().as_bytes()).is_err());
     }

@@ -37,7 +37,11 @@ impl Mesh {
     ) -> Result<(Self, DroppedFaces), PoseError> {
         let bytes = bytes.strip_prefix(BOM).unwrap_or(bytes);
         let mut mesh = if bytes.starts_with(b"ply") {
-            super::ply::read(bytes, limits, false, deadline)?.mesh
+            let read = super::ply::read(bytes, limits, true, deadline)?;
+            Mesh {
+                colours: read.colours,
+                ..read.mesh
+            }
         } else {
             super::obj::read(bytes, limits, deadline)?
         };

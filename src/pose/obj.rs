@@ -109,6 +109,7 @@ pub fn read(bytes: &[u8], limits: &MeshLimits, deadline: &Deadline) -> Result<Me
     let mut mesh = Mesh {
         vertices: Vec::with_capacity(nv),
         triangles: Vec::with_capacity(nt),
+        colours: None,
     };
     let mut face: Vec<u32> = Vec::new();
     for (n, line) in lines(bytes) {

@@ -637,6 +637,7 @@ pub fn read(
         mesh: Mesh {
             vertices,
             triangles,
+            colours: None,
         },
         colours: rgb,
     })
@@ -751,6 +752,18 @@ mod tests {
         let m = read(f.as_bytes(), &limits(), true, &Deadline::NONE).unwrap();
         assert_eq!(m.mesh.triangles, vec![[0, 1, 2], [0, 2, 3]]);
         assert_eq!(m.colours.unwrap()[3], [10.0, 20.0, 30.0]);
+        // A mesh read for a pose request keeps them; subdivided, its new
+        // vertices take their edge's mean colour.
+        let mesh = Mesh::parse(f.as_bytes()).unwrap();
+        let colours = mesh.colours.as_ref().expect("the vertex colours");
+        assert_eq!(colours.len(), mesh.vertices.len());
+        assert_eq!(colours[1], [0.0, 255.0, 0.0]);
+        let fine = mesh.subdivided(1);
+        assert_eq!(
+            fine.colours.as_ref().map(Vec::len),
+            Some(fine.vertices.len())
+        );
+        assert!(fine.colours.unwrap().contains(&[127.5, 127.5, 0.0]));
     }
 
     #[test]

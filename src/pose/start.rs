@@ -395,6 +395,77 @@ pub fn start_poses_by_colour(
     Ok(Some(out))
 }
 
+/// The correlation (-1 to 1) of the mesh's vertex colours at `pose` (each
+/// pixel the mean of its triangle's corners) with the image's, over the
+/// pixels the mesh covers inside `mask`, each channel about its mean:
+/// a change of the light's strength or of the camera's gain leaves it as
+/// it is. `None` without colours or with fewer than 20 such pixels.
+pub fn appearance(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    img: &ColorImage,
+    pose: &Pose,
+    mask: &Mask,
+    deadline: &Deadline,
+) -> Result<Option<f64>, PoseError> {
+    let Some(colours) = &mesh.colours else {
+        return Ok(None);
+    };
+    let (w, h) = (img.width(), img.height());
+    let Some((bx, by, bw, bh)) = projected_box(&mesh.vertices, k, pose) else {
+        return Ok(None);
+    };
+    let raster = rasterize(
+        &mesh.vertices,
+        &mesh.triangles,
+        k,
+        pose,
+        w,
+        h,
+        false,
+        deadline,
+    )?;
+    let (x0, y0, x1, y1) = grown_box((bx, by, bw, bh), 0.0, w, h);
+    let mut pairs: Vec<([f64; 3], [f64; 3])> = Vec::new();
+    for y in y0..y1.min(mask.height) {
+        for x in x0..x1.min(mask.width) {
+            if !mask.get(x, y) {
+                continue;
+            }
+            let Some(f) = raster.face_at(x, y) else {
+                continue;
+            };
+            let Some(t) = mesh.triangles.get(f as usize) else {
+                continue;
+            };
+            let rendered = [0, 1, 2].map(|c| {
+                t.iter()
+                    .map(|&v| f64::from(colours.get(v as usize).map_or(0.0, |col| col[c])))
+                    .sum::<f64>()
+                    / 3.0
+            });
+            let seen = [0, 1, 2].map(|c| f64::from(img.get(x, y, c)));
+            pairs.push((rendered, seen));
+        }
+    }
+    if pairs.len() < 20 {
+        return Ok(None);
+    }
+    let n = pairs.len() as f64;
+    let (mut cov, mut var_r, mut var_s) = (0.0, 0.0, 0.0);
+    for c in 0..3 {
+        let mr = pairs.iter().map(|p| p.0[c]).sum::<f64>() / n;
+        let ms = pairs.iter().map(|p| p.1[c]).sum::<f64>() / n;
+        for (r, s) in &pairs {
+            let (dr, ds) = (r[c] - mr, s[c] - ms);
+            cov += dr * ds;
+            var_r += dr * dr;
+            var_s += ds * ds;
+        }
+    }
+    Ok((var_r > 1e-9 && var_s > 1e-9).then(|| cov / (var_r * var_s).sqrt()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -561,5 +632,80 @@ mod tests {
         )
         .unwrap();
         assert!(none.is_none(), "{none:?}");
+    }
+
+    /// The mesh's own colours tell a pose from the same pose turned about:
+    /// the image drawn from the mesh's colours (lit, with a gain)
+    /// correlates with them at the true pose and against them turned half
+    /// a turn about the camera's vertical axis, whose outline is the same.
+    #[test]
+    fn appearance_tells_a_turned_about_pose() {
+        use crate::pose::render::{render_colours, Lighting};
+        let mut mesh = Mesh::cuboid(60.0, 60.0, 60.0);
+        // One side red, the other blue.
+        mesh.colours = Some(
+            mesh.vertices
+                .iter()
+                .map(|v| {
+                    if v.x > 0.0 {
+                        [220.0, 40.0, 30.0]
+                    } else {
+                        [30.0, 50.0, 200.0]
+                    }
+                })
+                .collect(),
+        );
+        // Small triangles, as a scanned mesh has: a triangle's mean colour
+        // is then its pixels'.
+        let mesh = mesh.subdivided(3);
+        let truth = Pose {
+            rotation: nalgebra::Rotation3::from_euler_angles(0.0, 0.5, 0.0).into_inner(),
+            translation: Vector3::new(0.0, 0.0, 500.0),
+        };
+        let (w, h) = (640, 480);
+        let lighting = Lighting {
+            light: Vector3::new(0.3, -0.2, 1.0),
+            ambient: 0.4,
+            gain: [0.8, 0.8, 0.8],
+        };
+        let (drawn, mask) = render_colours(
+            &mesh,
+            mesh.colours.as_deref(),
+            &k(),
+            &truth,
+            w,
+            h,
+            &lighting,
+        )
+        .unwrap();
+        let data: Vec<f32> = drawn
+            .iter()
+            .enumerate()
+            .flat_map(|(i, c)| {
+                if mask.get(i % w, i / w) {
+                    *c
+                } else {
+                    [90.0; 3]
+                }
+            })
+            .collect();
+        let img = ColorImage::new(w, h, data).unwrap();
+        let score = |p: &Pose| appearance(&mesh, &k(), &img, p, &mask, &Deadline::NONE).unwrap();
+        let turned = Pose {
+            rotation: nalgebra::Rotation3::from_euler_angles(0.0, std::f64::consts::PI, 0.0)
+                .into_inner()
+                * truth.rotation,
+            ..truth
+        };
+        let (at_truth, at_turned) = (score(&truth).unwrap(), score(&turned).unwrap());
+        assert!(at_truth > 0.8, "{at_truth}");
+        assert!(at_turned < 0.0, "{at_turned}");
+        // Without colours there is nothing to compare.
+        let plain = Mesh::cuboid(60.0, 60.0, 60.0);
+        assert!(
+            appearance(&plain, &k(), &img, &truth, &mask, &Deadline::NONE)
+                .unwrap()
+                .is_none()
+        );
     }
 }
