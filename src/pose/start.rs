@@ -131,6 +131,31 @@ pub struct Start {
 /// a level or two (about 15% each).
 pub const DEPTH_FACTORS: [f64; 7] = [0.7, 0.8, 0.9, 1.0, 1.1, 1.25, 1.4];
 
+/// Each rotation of `rotations` (unit quaternions) placed on the
+/// full-extent box `bbox` by [`pose_for_box`], those that place at all;
+/// gives up once `deadline` has passed.
+fn placed_on_box(
+    mesh: &Mesh,
+    k: &Intrinsics,
+    rotations: &[[f64; 4]],
+    bbox: (f64, f64, f64, f64),
+    deadline: &Deadline,
+) -> Result<Vec<(Matrix3<f64>, Pose)>, PoseError> {
+    let mut out = Vec::with_capacity(rotations.len());
+    for q in rotations {
+        if deadline.passed() {
+            return Err(PoseError::DeadlineExceeded);
+        }
+        let Some(r) = rotation_from_quaternion(q) else {
+            continue;
+        };
+        if let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) {
+            out.push((r, pose));
+        }
+    }
+    Ok(out)
+}
+
 /// The start poses of a detection with full-extent box `bbox` and visible
 /// mask `mask`: every rotation of `rotations` placed on the box by
 /// [`pose_for_box`] at the best of the [`DEPTH_FACTORS`] (along the ray
@@ -147,16 +172,7 @@ pub fn start_poses(
     deadline: &Deadline,
 ) -> Result<Vec<Start>, PoseError> {
     let mut out = Vec::with_capacity(rotations.len());
-    for q in rotations {
-        if deadline.passed() {
-            return Err(PoseError::DeadlineExceeded);
-        }
-        let Some(r) = rotation_from_quaternion(q) else {
-            continue;
-        };
-        let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) else {
-            continue;
-        };
+    for (r, pose) in placed_on_box(mesh, k, rotations, bbox, deadline)? {
         // The object's centre moves along its ray with the depth; each
         // depth is scored by the silhouette's IoU with the mask, or
         // without a mask by the IoU of its box with the detection's
@@ -302,16 +318,7 @@ pub fn start_poses_by_colour(
     };
     let centre = mesh_centre(mesh);
     let mut out = Vec::with_capacity(rotations.len());
-    for q in rotations {
-        if deadline.passed() {
-            return Err(PoseError::DeadlineExceeded);
-        }
-        let Some(r) = rotation_from_quaternion(q) else {
-            continue;
-        };
-        let Some(pose) = pose_for_box(&mesh.vertices, k, &r, bbox) else {
-            continue;
-        };
+    for (r, pose) in placed_on_box(mesh, k, rotations, bbox, deadline)? {
         let centre_cam = pose.translation + r * centre;
         let Some(c) = k.project(&centre_cam) else {
             continue;
@@ -479,6 +486,28 @@ mod tests {
         }
     }
 
+    /// The unit quaternion `[w, x, y, z]` of Euler angles.
+    fn quat(a: f64, b: f64, c: f64) -> [f64; 4] {
+        let r = nalgebra::Rotation3::from_euler_angles(a, b, c);
+        let q = UnitQuaternion::from_rotation_matrix(&r);
+        [q.w, q.i, q.j, q.k]
+    }
+
+    /// The mesh drawn at `pose` in a `w` x `h` image.
+    fn drawn(mesh: &Mesh, pose: &Pose, w: usize, h: usize) -> super::super::edges::DepthBuffer {
+        rasterize(
+            &mesh.vertices,
+            &mesh.triangles,
+            &k(),
+            pose,
+            w,
+            h,
+            false,
+            &Deadline::NONE,
+        )
+        .unwrap()
+    }
+
     /// A box placed by `pose_for_box` projects onto the box it was asked
     /// for, at the depth that gives it that size.
     #[test]
@@ -505,27 +534,12 @@ mod tests {
     #[test]
     fn the_true_rotation_ranks_first_by_silhouette() {
         let mesh = Mesh::cuboid(80.0, 30.0, 20.0);
-        let rot = |a: f64, b: f64, c: f64| {
-            let r = nalgebra::Rotation3::from_euler_angles(a, b, c);
-            let q = UnitQuaternion::from_rotation_matrix(&r);
-            [q.w, q.i, q.j, q.k]
-        };
-        let truth_q = rot(0.3, 0.2, 0.9);
+        let truth_q = quat(0.3, 0.2, 0.9);
         let truth = Pose {
             rotation: rotation_from_quaternion(&truth_q).unwrap(),
             translation: Vector3::new(0.0, 0.0, 500.0),
         };
-        let raster = rasterize(
-            &mesh.vertices,
-            &mesh.triangles,
-            &k(),
-            &truth,
-            640,
-            480,
-            false,
-            &Deadline::NONE,
-        )
-        .unwrap();
+        let raster = drawn(&mesh, &truth, 640, 480);
         let mut mask = Mask::new(640, 480);
         for y in 0..480 {
             for x in 0..640 {
@@ -534,10 +548,10 @@ mod tests {
         }
         let b = projected_box(&mesh.vertices, &k(), &truth).unwrap();
         let rotations = [
-            rot(0.3, 0.2, 0.0),
+            quat(0.3, 0.2, 0.0),
             truth_q,
-            rot(1.2, 0.2, 0.9),
-            rot(0.3, 1.0, -0.5),
+            quat(1.2, 0.2, 0.9),
+            quat(0.3, 1.0, -0.5),
         ];
         let starts =
             start_poses(&mesh, &k(), b, Some(&mask), &rotations, 2, &Deadline::NONE).unwrap();
@@ -554,28 +568,13 @@ mod tests {
     #[test]
     fn the_true_rotation_ranks_first_by_colour() {
         let mesh = Mesh::cuboid(80.0, 30.0, 20.0);
-        let rot = |a: f64, b: f64, c: f64| {
-            let r = nalgebra::Rotation3::from_euler_angles(a, b, c);
-            let q = UnitQuaternion::from_rotation_matrix(&r);
-            [q.w, q.i, q.j, q.k]
-        };
-        let truth_q = rot(0.3, 0.2, 0.9);
+        let truth_q = quat(0.3, 0.2, 0.9);
         let truth = Pose {
             rotation: rotation_from_quaternion(&truth_q).unwrap(),
             translation: Vector3::new(10.0, -5.0, 500.0),
         };
         let (w, h) = (640, 480);
-        let raster = rasterize(
-            &mesh.vertices,
-            &mesh.triangles,
-            &k(),
-            &truth,
-            w,
-            h,
-            false,
-            &Deadline::NONE,
-        )
-        .unwrap();
+        let raster = drawn(&mesh, &truth, w, h);
         let mut data = Vec::with_capacity(w * h * 3);
         let mut coarse = Mask::new(w, h);
         for y in 0..h {
@@ -596,10 +595,10 @@ mod tests {
         let (bx, by, bw, bh) = projected_box(&mesh.vertices, &k(), &truth).unwrap();
         let detected = (bx + 0.06 * bw, by - 0.04 * bh, bw * 1.1, bh * 1.05);
         let rotations = [
-            rot(0.3, 0.2, 0.0),
-            rot(1.2, 0.2, 0.9),
+            quat(0.3, 0.2, 0.0),
+            quat(1.2, 0.2, 0.9),
             truth_q,
-            rot(0.3, 1.0, -0.5),
+            quat(0.3, 1.0, -0.5),
         ];
         let starts = start_poses_by_colour(
             &mesh,
