@@ -541,7 +541,9 @@ pub fn estimate(
 /// around its box, see [`start_poses_by_colour`]); OR-IRLS refines each
 /// with the detection's mask (or the client's, or none, as `mask` says)
 /// and the answer with the best sum of edge and colour agreement (`score`
-/// plus `region_score`) wins.
+/// plus `region_score`, plus the [`appearance`] of the mesh's vertex
+/// colours where it has them) wins, refined once more as a client's
+/// start is where that does not lower its agreement.
 pub fn estimate_with<F>(
     img: &ColorImage,
     mesh: &Mesh,
