@@ -1020,7 +1020,8 @@ fn train_with_photo_boxes(
         )
     };
     pb.set_message(format!("{name}: photographs and renders"));
-    let with = train(&samples, &route(&as_boxes))?;
+    let with_route = route(&as_boxes);
+    let with = train(&samples, &with_route)?;
     let mut check = serde_json::Value::Null;
     let chosen = if args.keep_renders {
         with
@@ -1036,11 +1037,10 @@ fn train_with_photo_boxes(
             .cloned()
             .collect();
         let alone_route = route(&[]);
-        let drawn = route(&as_boxes).renders;
         let alone_trained: Vec<Sample> = with
             .trained
             .iter()
-            .filter(|s| !drawn.contains(&s.image))
+            .filter(|s| !with_route.renders.contains(&s.image))
             .cloned()
             .collect();
         let alone_params = photo_params(name, &alone_samples, &alone_route, &args.settings, params);

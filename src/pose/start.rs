@@ -268,6 +268,8 @@ pub fn start_poses_by_colour(
     if x1 <= x0 || y1 <= y0 || (mask.width, mask.height) != (w, h) {
         return Ok(None);
     }
+    // The background's pixels lie outside the box grown by 10%: a
+    // detection's box is off by a cell or two.
     let inner = grown_box(bbox, 0.1, w, h);
     let in_box = |x: usize, y: usize| {
         let (fx, fy) = (x as f64 + 0.5, y as f64 + 0.5);
@@ -317,6 +319,10 @@ pub fn start_poses_by_colour(
         f64::from(odds[(y - y0) * rw + (x - x0)])
     };
     let centre = mesh_centre(mesh);
+    // Where a silhouette placed on the box lies (with a margin).
+    let (sx0, sy0, sx1, sy1) = grown_box(bbox, 0.05, w, h);
+    // The finer shifts: a quarter of the coarse ones.
+    let step = (SHIFTS[1] - SHIFTS[0]) / 4.0 * side;
     let mut out = Vec::with_capacity(rotations.len());
     for (r, pose) in placed_on_box(mesh, k, rotations, bbox, deadline)? {
         let centre_cam = pose.translation + r * centre;
@@ -334,7 +340,6 @@ pub fn start_poses_by_colour(
             deadline,
         )?;
         // The silhouette's pixels, about the projected centre.
-        let (sx0, sy0, sx1, sy1) = grown_box(bbox, 0.05, w, h);
         let pixels: Vec<(f64, f64)> = (sy0..sy1)
             .flat_map(|y| (sx0..sx1).map(move |x| (x, y)))
             .filter(|&(x, y)| raster.covered(x, y))
@@ -368,12 +373,12 @@ pub fn start_poses_by_colour(
                 }
             }
         }
-        // Then finer about the best: steps of a seventh of the coarse ones.
+        // Then finer about the best: depths 1.5% apart (the coarse ones
+        // 10%), shifts a quarter of the coarse ones.
         if let Some((_, f0, u0, v0)) = best {
             for i in -3..=3 {
                 for dy in -2..=2 {
                     for dx in -2..=2 {
-                        let step = (SHIFTS[1] - SHIFTS[0]) / 4.0 * side;
                         keep_best(
                             &mut best,
                             f0 * (1.0 + 0.015 * f64::from(i)),
