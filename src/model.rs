@@ -545,6 +545,63 @@ impl Model {
         })?;
         Self::from_bytes(&bytes)
     }
+
+    /// This model with `other`'s components appended, each of their scores
+    /// moved by `offset` (taken from their bias): a single-pose model joined
+    /// with view components trained apart, their scores calibrated against
+    /// its own (`sdhop-train join`). Both must be models of one object, of
+    /// the same cells, pyramid, segmentation, `K` and pairwise mode; the
+    /// detection settings, box correction and name are this model's, and
+    /// `other`'s provenance is kept under `joined`.
+    pub fn joined(&self, other: &Model, offset: f64) -> Result<Model, ModelError> {
+        let (a, b) = (&self.meta, &other.meta);
+        let differ = |what: &str| {
+            Err(ModelError::Invalid(format!(
+                "cannot join {} and {}: their {what} differ",
+                a.name, b.name
+            )))
+        };
+        if self.labels() != other.labels() || self.labels().len() != 1 {
+            return differ("objects (each must be a model of the same one object)");
+        }
+        if a.pyramid != b.pyramid || a.cells != b.cells {
+            return differ("cell features or pyramids");
+        }
+        if a.segmentation != b.segmentation {
+            return differ("segmentation settings");
+        }
+        if (a.hop_k, a.pairwise) != (b.hop_k, b.pairwise) {
+            return differ("higher-order K or pairwise modes");
+        }
+        if !offset.is_finite() {
+            return Err(ModelError::Invalid(format!(
+                "join offset must be finite, got {offset}"
+            )));
+        }
+        let mut meta = a.clone();
+        meta.viewpoints.extend(b.viewpoints.iter().cloned());
+        meta.format_version = a.format_version.max(b.format_version);
+        if let Some(p) = meta.provenance.as_object_mut() {
+            p.insert(
+                "joined".into(),
+                serde_json::json!({
+                    "components_from": b.name,
+                    "offset": offset,
+                    "provenance": b.provenance,
+                }),
+            );
+        }
+        let mut views = self.views.clone();
+        views.extend(other.views.iter().map(|w| {
+            // A detection's score is minus its energy, which adds the bias.
+            let mut w = w.clone();
+            w.bias -= offset as f32;
+            w
+        }));
+        let mut shapes = self.shapes.clone();
+        shapes.extend(other.shapes.iter().cloned());
+        Self::checked(meta, views, shapes)
+    }
 }
 
 #[cfg(test)]

@@ -12,6 +12,7 @@ mod cv;
 mod demo;
 mod detect;
 mod eval;
+mod join;
 mod mesh;
 mod pose;
 mod pose_bench;
@@ -52,6 +53,7 @@ use cv::*;
 use demo::*;
 use detect::*;
 use eval::*;
+use join::*;
 use mesh::*;
 use pose::*;
 use pose_bench::*;
@@ -83,6 +85,10 @@ pub(crate) enum Command {
     /// Store the figures of a `cv` report in the models' metadata (for
     /// models trained with the same settings without `--cv-report`).
     Annotate(AnnotateArgs),
+    /// Join each object's model with the components of another model of
+    /// it trained apart (single-pose with view components), their scores
+    /// moved by an offset.
+    Join(JoinArgs),
     /// Detect objects in one image; prints the detection JSON of `POST /detect`.
     Detect(DetectArgs),
     /// Refine an object's 3-D pose from an image and its mesh (OR-IRLS with
@@ -210,6 +216,7 @@ pub fn main() -> ExitCode {
         Command::Cv(a) => run_cv(a),
         Command::Eval(a) => run_eval(a),
         Command::Annotate(a) => run_annotate(a),
+        Command::Join(a) => run_join(a),
         Command::Detect(a) => run_detect(a),
         Command::Pose(a) => run_pose(a),
         Command::PoseData(a) => run_pose_data(a),
