@@ -609,6 +609,52 @@ impl Model {
 mod tests {
     use super::*;
 
+    #[test]
+    fn joined_components_fire_moved_by_the_offset() {
+        use crate::pipeline::{detect_image, DetectOptions};
+        use crate::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
+        let obj = SynthObject {
+            cols: 12,
+            rows: 10,
+            seed: 11,
+        };
+        let m = hand_model(&obj, "obj", true, &HandModelParams::default()).unwrap();
+        let sc = scene(&obj, &SceneParams::default()).unwrap();
+        let opts = DetectOptions::default();
+        let best = |model: &Model| {
+            let r = detect_image(&sc.image, &[model], &opts).unwrap();
+            let d = r.detections[0].clone();
+            (d.score, d.viewpoint, d.bbox)
+        };
+        let (s0, v0, b0) = best(&m);
+        assert_eq!(v0, 0);
+        // Above: the appended copy wins by exactly the offset, same place.
+        let up = m.joined(&m, 0.5).unwrap();
+        assert_eq!(up.views.len(), 2);
+        assert_eq!(up.meta.viewpoints.len(), 2);
+        assert_eq!(up.meta.provenance["joined"]["offset"], 0.5);
+        let (s1, v1, b1) = best(&up);
+        assert_eq!(v1, 1);
+        assert!((s1 - s0 - 0.5).abs() < 1e-4, "{s1} vs {s0}");
+        assert_eq!(
+            (b1.x, b1.y, b1.width, b1.height),
+            (b0.x, b0.y, b0.width, b0.height)
+        );
+        // Below: the model's own component keeps the detection.
+        let (s2, v2, _) = best(&m.joined(&m, -0.5).unwrap());
+        assert_eq!(v2, 0);
+        assert!((s2 - s0).abs() < 1e-9);
+        // It round-trips through its file.
+        assert_eq!(Model::from_bytes(&up.to_bytes().unwrap()).unwrap(), up);
+        // Another object or other cells are refused.
+        let other = hand_model(&obj, "other", true, &HandModelParams::default()).unwrap();
+        assert!(m.joined(&other, 0.0).is_err());
+        let mut cnn = m.clone();
+        cnn.meta.pyramid.levels_per_octave += 1;
+        assert!(m.joined(&cnn, 0.0).is_err());
+        assert!(m.joined(&m, f64::NAN).is_err());
+    }
+
     fn sample() -> Model {
         let mut w = ViewWeights::zeros(2, 3, 4);
         for (i, v) in w.w_vis.iter_mut().enumerate() {

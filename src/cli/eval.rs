@@ -28,6 +28,9 @@ pub(crate) struct EvalArgs {
     /// on with `train --boxes-first N`).
     #[arg(long, default_value_t = 0)]
     pub(crate) skip_first: usize,
+    /// Only the first N images of each object (after `--skip-first`).
+    #[arg(long)]
+    pub(crate) first: Option<usize>,
     /// Only every n-th image of each object (a quick check).
     #[arg(long, default_value_t = 1)]
     pub(crate) every: usize,
@@ -62,7 +65,12 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
     };
     let images: Vec<_> = part_images
         .iter()
-        .flat_map(|imgs| imgs.iter().skip(args.skip_first).step_by(every))
+        .flat_map(|imgs| {
+            imgs.iter()
+                .skip(args.skip_first)
+                .take(args.first.unwrap_or(usize::MAX))
+                .step_by(every)
+        })
         .collect();
     let cache = PyramidCache::default();
     let m0 = refs.first().ok_or_else(|| Failure::input("no model"))?;

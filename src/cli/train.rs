@@ -89,6 +89,12 @@ pub(crate) struct TrainArgs {
     /// multiple --skip-first N`.
     #[arg(long)]
     pub(crate) boxes_first: Option<usize>,
+    /// Leave out fold `K` of `N` of each object's box-only photographs
+    /// (`K/N`, K from 0: the K-th of N runs of consecutive photographs,
+    /// sorted by name): the fold models whose held-out photographs `join
+    /// --check-folds` scores.
+    #[arg(long, value_parser = parse_box_fold)]
+    pub(crate) box_fold: Option<(usize, usize)>,
     /// CCCP rounds of the box-only photographs (impute, retrain).
     #[arg(long, default_value_t = MultiViewParams::default().latent_rounds)]
     pub(crate) latent_rounds: usize,
@@ -167,6 +173,26 @@ fn median_longer(sizes: &[(f64, f64)]) -> f64 {
     let mut v: Vec<f64> = sizes.iter().map(|&(w, h)| w.max(h)).collect();
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// `K/N` of `--box-fold`.
+fn parse_box_fold(s: &str) -> Result<(usize, usize), String> {
+    let bad = || format!("{s:?}: expected K/N with 0 <= K < N, N >= 2 (e.g. 0/2)");
+    let (k, n) = s.split_once('/').ok_or_else(bad)?;
+    let (k, n): (usize, usize) = (
+        k.trim().parse().map_err(|_| bad())?,
+        n.trim().parse().map_err(|_| bad())?,
+    );
+    if n < 2 || k >= n {
+        return Err(bad());
+    }
+    Ok((k, n))
+}
+
+/// The indices of fold `k` of `n` over `len` items: the k-th of n runs of
+/// consecutive items, as even as they can be.
+pub(crate) fn fold_range(k: usize, n: usize, len: usize) -> std::ops::Range<usize> {
+    (k * len / n)..((k + 1) * len / n)
 }
 
 /// `params` with the threshold of `sources` unless one was given (by
@@ -269,8 +295,11 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
             Ko8Data::load(root, &args.objects)
         }
         .map_err(Failure::input)?;
-        if let Some(n) = args.boxes_first {
-            for p in &mut data.photos {
+        for p in &mut data.photos {
+            if let Some((k, n)) = args.box_fold {
+                p.drain(fold_range(k, n, p.len()));
+            }
+            if let Some(n) = args.boxes_first {
                 p.truncate(n);
             }
         }
@@ -737,6 +766,27 @@ mod tests {
     use super::*;
     use crate::data::Annotation;
     use crate::vision::mask::Mask;
+
+    #[test]
+    fn box_folds_cover_every_photograph_once() {
+        for len in [0, 1, 7, 30, 31] {
+            for n in 2..5 {
+                let mut seen = vec![0; len];
+                for k in 0..n {
+                    for i in fold_range(k, n, len) {
+                        seen[i] += 1;
+                    }
+                }
+                assert!(seen.iter().all(|&c| c == 1), "{len} {n}");
+            }
+        }
+        assert_eq!(fold_range(0, 2, 30), 0..15);
+        assert_eq!(fold_range(1, 2, 30), 15..30);
+        assert_eq!(parse_box_fold("1/2"), Ok((1, 2)));
+        for bad in ["2/2", "0/1", "x/2", "1", "-1/2"] {
+            assert!(parse_box_fold(bad).is_err(), "{bad}");
+        }
+    }
 
     fn sample(id: &str, mask_known: Option<bool>, viewpoint: usize) -> Sample {
         Sample {
