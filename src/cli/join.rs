@@ -83,6 +83,14 @@ struct Candidate {
     admissible: bool,
 }
 
+/// What `--check-folds` chose for one object.
+struct Choice {
+    name: String,
+    /// `None`: not joined.
+    offset: Option<f64>,
+    candidates: Vec<Candidate>,
+}
+
 /// `base`'s models with `add`'s components joined at `offset` (none:
 /// unchanged), for the objects `add` has.
 fn joined_all(base: &[Model], add: &[Model], offset: Option<f64>) -> Result<Vec<Model>, Failure> {
@@ -129,7 +137,7 @@ fn choose_offsets(
     args: &JoinArgs,
     base: &[Model],
     added: &[Model],
-) -> Result<Vec<(String, Option<f64>, Vec<Candidate>)>, Failure> {
+) -> Result<Vec<Choice>, Failure> {
     let root = args
         .ko8
         .as_ref()
@@ -227,7 +235,11 @@ fn choose_offsets(
             .max_by(|a, b| a.held_out.total_cmp(&b.held_out))
             .filter(|c| c.held_out >= plain.held_out + args.min_gain)
             .and_then(|c| c.offset);
-        out.push((m.meta.name.clone(), chosen, cs));
+        out.push(Choice {
+            name: m.meta.name.clone(),
+            offset: chosen,
+            candidates: cs,
+        });
     }
     Ok(out)
 }
@@ -286,8 +298,8 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
         let picked = match &choice {
             Some(c) => c
                 .iter()
-                .find(|(n, _, _)| n == name)
-                .and_then(|(_, o, _)| *o),
+                .find(|ch| &ch.name == name)
+                .and_then(|ch| ch.offset),
             None => Some(offset_of(&args.offset, name)?),
         };
         let out = match (other.filter(|_| chosen), picked) {
@@ -296,10 +308,10 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
                     .joined(o, offset)
                     .map_err(|e| Failure::input(format!("{name}: {e}")))?;
                 if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
-                    if let Some((_, _, cs)) = c.iter().find(|(n, _, _)| n == name) {
+                    if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
                         p.insert(
                             "join_check".into(),
-                            serde_json::to_value(cs).map_err(Failure::io)?,
+                            serde_json::to_value(&ch.candidates).map_err(Failure::io)?,
                         );
                     }
                 }
@@ -322,10 +334,11 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
 }
 
 /// The table of `--check-folds`' figures.
-fn print_choice(choice: &[(String, Option<f64>, Vec<Candidate>)]) {
+fn print_choice(choice: &[Choice]) {
     println!("object      offset  held-out (AUC+cross)/2 per fold          single AUC/cross/seg/VOC   ok");
-    for (name, chosen, cs) in choice {
-        for c in cs {
+    for ch in choice {
+        let (name, chosen) = (&ch.name, ch.offset);
+        for c in &ch.candidates {
             let folds: Vec<String> = c
                 .folds
                 .iter()
@@ -334,7 +347,7 @@ fn print_choice(choice: &[(String, Option<f64>, Vec<Candidate>)]) {
             let single = c.single.map_or("-".into(), |s| {
                 format!("{:.3}/{:.3}/{:.4}/{:.4}", s[0], s[1], s[2], s[3])
             });
-            let mark = if c.offset == *chosen { " <" } else { "" };
+            let mark = if c.offset == chosen { " <" } else { "" };
             println!(
                 "{name:<11} {:>6}  {:.3}  [{}]  {single}  {}{mark}",
                 c.offset.map_or("none".into(), |o| format!("{o:+.2}")),
