@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use sdhop::data::{Annotation, Sample};
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
-use sdhop::synth::{scene, Scene, SceneParams, SynthObject};
+use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
 use sdhop::train::{train_model, PyramidCache, TrainParams};
 use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::{box_iou, LossAugment};
@@ -636,5 +636,106 @@ fn coco_box_only_training_with_background_regions_and_mirrored_photographs() {
         a >= 6 && m >= 6 && b >= 5,
         "held-out objects found: default {a}/8, mirrored {m}/8, plain {b}/8"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `join` appends another model's components at an offset (its scores
+/// move by it), leaves objects without one unchanged, and refuses a base
+/// that is already joined, a bad offset, and a check without its data.
+#[test]
+fn join_cli_appends_components_and_refuses_bad_input() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-join-{}", std::process::id()));
+    let (base, add, out) = (dir.join("base"), dir.join("add"), dir.join("out"));
+    for d in [&base, &add] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    let hp = HandModelParams::default();
+    let obj = hand_model(&OBJECT, "obj", true, &hp).unwrap();
+    obj.save(&base.join("obj.safetensors")).unwrap();
+    hand_model(&OBJECT, "other", true, &hp)
+        .unwrap()
+        .save(&base.join("other.safetensors"))
+        .unwrap();
+    obj.save(&add.join("obj.safetensors")).unwrap();
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(bin).args(args).output().unwrap();
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let p = |d: &std::path::Path| d.to_str().unwrap().to_owned();
+    let (code, stdout, stderr) = run(&[
+        "join",
+        "--base",
+        &p(&base),
+        "--add",
+        &p(&add),
+        "--offset=0.5",
+        "--out",
+        &p(&out),
+    ]);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(
+        stdout.contains("other: 1 component(s) not joined"),
+        "{stdout}"
+    );
+    let joined = Model::load(&out.join("obj.safetensors")).unwrap();
+    assert_eq!(joined.views.len(), 2);
+    assert_eq!(
+        Model::load(&out.join("other.safetensors"))
+            .unwrap()
+            .views
+            .len(),
+        1
+    );
+    // The appended copy wins by the offset.
+    let sc = scene(&OBJECT, &scene_params(7)).unwrap();
+    let best = |m: &Model| {
+        let r = detect_image(&sc.image, &[m], &DetectOptions::default()).unwrap();
+        (r.detections[0].score, r.detections[0].viewpoint)
+    };
+    let ((s0, _), (s1, v1)) = (best(&obj), best(&joined));
+    assert_eq!(v1, 1);
+    assert!((s1 - s0 - 0.5).abs() < 1e-4, "{s1} vs {s0}");
+    // Refusals, each with status 2 and a message naming the cause.
+    let (code, _, stderr) = run(&[
+        "join",
+        "--base",
+        &p(&out),
+        "--add",
+        &p(&add),
+        "--out",
+        &p(&dir.join("again")),
+    ]);
+    assert_eq!(code, Some(2));
+    assert!(stderr.contains("already a joined model"), "{stderr}");
+    let (code, _, stderr) = run(&[
+        "join",
+        "--base",
+        &p(&base),
+        "--add",
+        &p(&add),
+        "--offset=abc",
+        "--out",
+        &p(&out),
+    ]);
+    assert_eq!(code, Some(2));
+    assert!(stderr.contains("--offset"), "{stderr}");
+    let (code, _, stderr) = run(&[
+        "join",
+        "--base",
+        &p(&base),
+        "--add",
+        &p(&add),
+        "--check-folds",
+        &p(&add),
+        "--out",
+        &p(&out),
+    ]);
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("--ko8"), "{stderr}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -43,23 +43,35 @@ pub(crate) struct JoinArgs {
     pub(crate) ko8: Option<PathBuf>,
     /// Folders of fold models, fold K's (from 0) trained as `--add`'s with
     /// `train --box-fold K/N` (N = the number of folders): choose per
-    /// object among not joining and joining at each of `--offsets` by the
-    /// mean of AUC and cross-object AUC on each fold's held-out box-only
-    /// photographs, averaged over the folds. A choice must also keep the
-    /// single-pose photographs' figures (with `--add`'s components) and
-    /// gain at least `--min-gain` over not joining. Replaces `--offset`.
+    /// object among not joining and joining at each of `--offsets`, each
+    /// with each of `--colour-weights`, by the mean of AUC and
+    /// cross-object AUC on each fold's held-out box-only photographs,
+    /// averaged over the folds. A choice must also keep the single-pose
+    /// photographs' figures (with `--add`'s components) and gain at least
+    /// `--min-gain` over the base model as it is, which is kept otherwise.
+    /// Replaces `--offset` and `--colour-weight`.
     #[arg(long, value_delimiter = ',', requires = "ko8")]
     pub(crate) check_folds: Vec<PathBuf>,
-    /// Offsets `--check-folds` chooses among.
+    /// Offsets `--check-folds` chooses among (besides not joining).
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "0,0.25,0.5,0.75",
+        default_value = "0,0.25,0.5",
         allow_hyphen_values = true
     )]
     pub(crate) offsets: Vec<f64>,
-    /// Least gain of a joined model's held-out figure over the base's for
-    /// `--check-folds` to join it.
+    /// Colour-agreement weights `--check-folds` chooses among, for each
+    /// offset and for not joining (`DetectParams::colour_weight`: the
+    /// mean log ratio of the object's learned colours to the image's over
+    /// a detection's mask, added to its score).
+    #[arg(long, value_delimiter = ',', default_value = "0,0.25,0.5")]
+    pub(crate) colour_weights: Vec<f64>,
+    /// The colour weight of every output model without `--check-folds`
+    /// (default: each base model's own).
+    #[arg(long)]
+    pub(crate) colour_weight: Option<f64>,
+    /// Least gain of a setting's held-out figure over the base model's for
+    /// `--check-folds` to choose it.
     #[arg(long, default_value_t = 0.01)]
     pub(crate) min_gain: f64,
     /// Most a joined model may lose on the single-pose photographs (AUC,
@@ -68,11 +80,20 @@ pub(crate) struct JoinArgs {
     pub(crate) single_tolerance: f64,
 }
 
-/// Figures of one candidate (not joined, or joined at an offset) for one
-/// object.
-#[derive(Clone, Debug, Default, serde::Serialize)]
-struct Candidate {
+/// One way to ship an object's model: joined at an offset or not, with a
+/// colour-agreement weight.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+struct Setting {
+    /// `None`: not joined.
     offset: Option<f64>,
+    /// [`crate::vision::detect::DetectParams::colour_weight`].
+    colour_weight: f64,
+}
+
+/// Figures of one setting for one object.
+#[derive(Clone, Debug, serde::Serialize)]
+struct Candidate {
+    setting: Setting,
     /// Per fold: (AUC, cross-object AUC) on its held-out photographs.
     folds: Vec<(f64, f64)>,
     /// Mean over folds of (AUC + cross AUC) / 2.
@@ -86,23 +107,27 @@ struct Candidate {
 /// What `--check-folds` chose for one object.
 struct Choice {
     name: String,
-    /// `None`: not joined.
-    offset: Option<f64>,
+    /// `None`: the base model unchanged.
+    setting: Option<Setting>,
     candidates: Vec<Candidate>,
 }
 
-/// `base`'s models with `add`'s components joined at `offset` (none:
-/// unchanged), for the objects `add` has.
-fn joined_all(base: &[Model], add: &[Model], offset: Option<f64>) -> Result<Vec<Model>, Failure> {
+/// `m` in `setting`, with `add` the components to join (if any).
+fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, Failure> {
+    let mut out = match (setting.offset, add) {
+        (Some(o), Some(a)) => m
+            .joined(a, o)
+            .map_err(|e| Failure::input(format!("{}: {e}", m.meta.name)))?,
+        _ => m.clone(),
+    };
+    out.meta.detection.colour_weight = setting.colour_weight;
+    Ok(out)
+}
+
+/// `base`'s models in `setting`, each with `add`'s model of its object.
+fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, Failure> {
     base.iter()
-        .map(
-            |m| match (offset, add.iter().find(|a| a.meta.name == m.meta.name)) {
-                (Some(o), Some(a)) => m
-                    .joined(a, o)
-                    .map_err(|e| Failure::input(format!("{}: {e}", m.meta.name))),
-                _ => Ok(m.clone()),
-            },
-        )
+        .map(|m| apply(m, add.iter().find(|a| a.meta.name == m.meta.name), setting))
         .collect()
 }
 
@@ -131,9 +156,9 @@ fn fill_cache(cache: &PyramidCache, images: &[&Sample], m: &Model) -> Result<(),
     Ok(())
 }
 
-/// The offset chosen per object by the folds (`None`: not joined), with
-/// every candidate's figures.
-fn choose_offsets(
+/// The setting chosen per object by the folds, with every candidate's
+/// figures.
+fn choose_settings(
     args: &JoinArgs,
     base: &[Model],
     added: &[Model],
@@ -142,26 +167,49 @@ fn choose_offsets(
         .ko8
         .as_ref()
         .ok_or_else(|| Failure::input("--check-folds needs --ko8"))?;
+    if args
+        .offsets
+        .iter()
+        .chain(&args.colour_weights)
+        .any(|o| !o.is_finite())
+        || args.colour_weights.iter().any(|&w| w < 0.0)
+    {
+        return Err(Failure::input(
+            "--offsets must be finite numbers, --colour-weights finite and >= 0",
+        ));
+    }
     let data = Ko8Data::load(root, &[])
         .and_then(|d| d.with_multiview(root))
         .map_err(Failure::input)?;
     let m0 = base
         .first()
         .ok_or_else(|| Failure::input("no base model"))?;
-    let offsets: Vec<Option<f64>> = std::iter::once(None)
-        .chain(args.offsets.iter().map(|&o| Some(o)))
-        .collect();
-    if args.offsets.iter().any(|o| !o.is_finite()) {
-        return Err(Failure::input("--offsets must be finite numbers"));
+    let mut weights = args.colour_weights.clone();
+    if weights.is_empty() {
+        weights.push(m0.meta.detection.colour_weight);
     }
+    let settings: Vec<Setting> = weights
+        .iter()
+        .flat_map(|&colour_weight| {
+            std::iter::once(None)
+                .chain(args.offsets.iter().map(|&o| Some(o)))
+                .map(move |offset| Setting {
+                    offset,
+                    colour_weight,
+                })
+        })
+        .collect();
     let mut cands: Vec<Vec<Candidate>> = base
         .iter()
         .map(|_| {
-            offsets
+            settings
                 .iter()
-                .map(|&offset| Candidate {
-                    offset,
-                    ..Candidate::default()
+                .map(|&setting| Candidate {
+                    setting,
+                    folds: Vec::new(),
+                    held_out: 0.0,
+                    single: None,
+                    admissible: true,
                 })
                 .collect()
         })
@@ -169,6 +217,10 @@ fn choose_offsets(
     let position =
         |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
     let n = args.check_folds.len();
+    let pb = progress_bar(
+        (settings.len() * (n + 1)) as u64,
+        "settings on the folds and single-pose photographs",
+    );
     for (k, dir) in args.check_folds.iter().enumerate() {
         let fold = load_model_dir(dir)?;
         let images: Vec<&Sample> = data
@@ -176,15 +228,15 @@ fn choose_offsets(
             .iter()
             .flat_map(|p| p[fold_range(k, n, p.len())].iter())
             .collect();
-        eprintln!(
+        pb.println(format!(
             "fold {k}/{n} ({}): {} held-out box-only photographs",
             dir.display(),
             images.len()
-        );
+        ));
         let cache = PyramidCache::default();
         fill_cache(&cache, &images, m0)?;
-        for (ci, &offset) in offsets.iter().enumerate() {
-            let models = joined_all(base, &fold, offset)?;
+        for (ci, &setting) in settings.iter().enumerate() {
+            let models = applied_all(base, &fold, setting)?;
             let scores = evaluate(&data, &images, &models, &cache)?;
             for (mi, m) in base.iter().enumerate() {
                 let s = position(&scores, &m.meta.name).map(|i| &scores[i]);
@@ -192,15 +244,16 @@ fn choose_offsets(
                     .folds
                     .push(s.map_or((0.0, 0.0), |s| (s.auc, s.auc_cross)));
             }
+            pb.inc(1);
         }
     }
     // The single-pose guard, with the components the output will carry.
     let images: Vec<&Sample> = data.images.iter().flatten().collect();
-    eprintln!("single-pose guard: {} photographs", images.len());
+    pb.println(format!("single-pose guard: {} photographs", images.len()));
     let cache = PyramidCache::default();
     fill_cache(&cache, &images, m0)?;
-    for (ci, &offset) in offsets.iter().enumerate() {
-        let models = joined_all(base, added, offset)?;
+    for (ci, &setting) in settings.iter().enumerate() {
+        let models = applied_all(base, added, setting)?;
         let scores = evaluate(&data, &images, &models, &cache)?;
         for (mi, m) in base.iter().enumerate() {
             cands[mi][ci].single = position(&scores, &m.meta.name).map(|i| {
@@ -208,40 +261,65 @@ fn choose_offsets(
                 [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
             });
         }
+        pb.inc(1);
     }
-    let tol = args.single_tolerance;
+    pb.finish_and_clear();
     let mut out = Vec::new();
     for (m, mut cs) in base.iter().zip(cands) {
-        for c in &mut cs {
-            c.held_out = c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>()
-                / c.folds.len().max(1) as f64;
-        }
-        let plain = cs[0].clone();
-        for c in &mut cs {
-            c.admissible = match (c.single, plain.single) {
-                (Some(s), Some(p)) => {
-                    s[0] >= p[0] - tol
-                        && s[1] >= p[1] - tol
-                        && s[2] <= p[2] + tol
-                        && s[3] <= p[3] + tol
-                }
-                _ => true,
-            };
-        }
         let has_add = added.iter().any(|a| a.meta.name == m.meta.name);
-        let chosen = cs
-            .iter()
-            .filter(|c| c.offset.is_some() && c.admissible && has_add)
-            .max_by(|a, b| a.held_out.total_cmp(&b.held_out))
-            .filter(|c| c.held_out >= plain.held_out + args.min_gain)
-            .and_then(|c| c.offset);
+        let setting = pick_setting(
+            &mut cs,
+            m.meta.detection.colour_weight,
+            has_add,
+            args.single_tolerance,
+            args.min_gain,
+        );
         out.push(Choice {
             name: m.meta.name.clone(),
-            offset: chosen,
+            setting,
             candidates: cs,
         });
     }
     Ok(out)
+}
+
+/// The best admissible setting by its held-out figure (mean over the
+/// folds), where it gains at least `min_gain` over the base model as it is
+/// (not joined, its own colour weight `own`); `None`: keep that. A setting
+/// is admissible where its single-pose figures are within `tol` of the
+/// base's (AUC and cross AUC no lower, segmentation and VOC errors no
+/// higher) and, joined, there are components to join (`has_add`). Sets
+/// each candidate's `held_out` and `admissible`.
+fn pick_setting(
+    cs: &mut [Candidate],
+    own: f64,
+    has_add: bool,
+    tol: f64,
+    min_gain: f64,
+) -> Option<Setting> {
+    for c in cs.iter_mut() {
+        c.held_out =
+            c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>() / c.folds.len().max(1) as f64;
+    }
+    let plain = cs
+        .iter()
+        .find(|c| c.setting.offset.is_none() && c.setting.colour_weight == own)
+        .cloned();
+    for c in cs.iter_mut() {
+        let guard = match (c.single, plain.as_ref().and_then(|p| p.single)) {
+            (Some(s), Some(p)) => {
+                s[0] >= p[0] - tol && s[1] >= p[1] - tol && s[2] <= p[2] + tol && s[3] <= p[3] + tol
+            }
+            _ => true,
+        };
+        c.admissible = guard && (c.setting.offset.is_none() || has_add);
+    }
+    let floor = plain.as_ref().map_or(f64::NEG_INFINITY, |p| p.held_out) + min_gain;
+    cs.iter()
+        .filter(|c| c.admissible)
+        .max_by(|a, b| a.held_out.total_cmp(&b.held_out))
+        .filter(|c| c.held_out >= floor)
+        .map(|c| c.setting)
 }
 
 /// The offset of `name` from `--offset`'s values: `NAME=VALUE` for it,
@@ -273,6 +351,16 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
             args.base.display()
         )));
     }
+    if let Some(m) = base
+        .iter()
+        .find(|m| m.meta.provenance.get("joined").is_some())
+    {
+        return Err(Failure::input(format!(
+            "--base {}: {} is already a joined model; join the single-pose models (train --sources single)",
+            args.base.display(),
+            m.meta.name
+        )));
+    }
     let added = load_model_dir(&args.add)?;
     for o in &args.objects {
         if !base.iter().any(|m| &m.meta.name == o) {
@@ -285,7 +373,7 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
     let choice = if args.check_folds.is_empty() {
         None
     } else {
-        let c = choose_offsets(args, &base, &added)?;
+        let c = choose_settings(args, &base, &added)?;
         print_choice(&c);
         Some(c)
     };
@@ -295,18 +383,19 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
         let name = &m.meta.name;
         let chosen = args.objects.is_empty() || args.objects.contains(name);
         let other = added.iter().find(|a| &a.meta.name == name);
-        let picked = match &choice {
+        let setting = match &choice {
             Some(c) => c
                 .iter()
                 .find(|ch| &ch.name == name)
-                .and_then(|ch| ch.offset),
-            None => Some(offset_of(&args.offset, name)?),
+                .and_then(|ch| ch.setting),
+            None => Some(Setting {
+                offset: Some(offset_of(&args.offset, name)?),
+                colour_weight: args.colour_weight.unwrap_or(m.meta.detection.colour_weight),
+            }),
         };
-        let out = match (other.filter(|_| chosen), picked) {
-            (Some(o), Some(offset)) => {
-                let mut j = m
-                    .joined(o, offset)
-                    .map_err(|e| Failure::input(format!("{name}: {e}")))?;
+        let out = match setting.filter(|_| chosen) {
+            Some(setting) => {
+                let mut j = apply(m, other, setting)?;
                 if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
                     if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
                         p.insert(
@@ -315,14 +404,20 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
                         );
                     }
                 }
+                let joined = match (setting.offset, other) {
+                    (Some(o), Some(a)) => {
+                        format!("+ {} component(s) at offset {o:+.3}", a.views.len())
+                    }
+                    _ => "not joined".into(),
+                };
                 println!(
-                    "{name}: {} + {} component(s), offset {offset:+.3}",
+                    "{name}: {} component(s) {joined}, colour weight {}",
                     m.views.len(),
-                    o.views.len()
+                    setting.colour_weight
                 );
                 j
             }
-            _ => {
+            None => {
                 println!("{name}: unchanged");
                 m.clone()
             }
@@ -335,9 +430,10 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
 
 /// The table of `--check-folds`' figures.
 fn print_choice(choice: &[Choice]) {
-    println!("object      offset  held-out (AUC+cross)/2 per fold          single AUC/cross/seg/VOC   ok");
+    println!(
+        "object      offset colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
+    );
     for ch in choice {
-        let (name, chosen) = (&ch.name, ch.offset);
         for c in &ch.candidates {
             let folds: Vec<String> = c
                 .folds
@@ -347,14 +443,94 @@ fn print_choice(choice: &[Choice]) {
             let single = c.single.map_or("-".into(), |s| {
                 format!("{:.3}/{:.3}/{:.4}/{:.4}", s[0], s[1], s[2], s[3])
             });
-            let mark = if c.offset == chosen { " <" } else { "" };
+            let mark = if Some(c.setting) == ch.setting {
+                " <"
+            } else {
+                ""
+            };
             println!(
-                "{name:<11} {:>6}  {:.3}  [{}]  {single}  {}{mark}",
-                c.offset.map_or("none".into(), |o| format!("{o:+.2}")),
+                "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {}{mark}",
+                ch.name,
+                c.setting
+                    .offset
+                    .map_or("none".into(), |o| format!("{o:+.2}")),
+                c.setting.colour_weight,
                 c.held_out,
                 folds.join(" "),
                 if c.admissible { "yes" } else { "no" },
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cand(
+        offset: Option<f64>,
+        colour_weight: f64,
+        folds: &[(f64, f64)],
+        single: [f64; 4],
+    ) -> Candidate {
+        Candidate {
+            setting: Setting {
+                offset,
+                colour_weight,
+            },
+            folds: folds.to_vec(),
+            held_out: 0.0,
+            single: Some(single),
+            admissible: false,
+        }
+    }
+
+    const SP: [f64; 4] = [1.0, 1.0, 0.20, 0.10];
+
+    #[test]
+    fn the_best_held_out_setting_wins_within_the_single_pose_guard() {
+        let mut cs = vec![
+            cand(None, 0.0, &[(0.5, 0.5), (0.7, 0.7)], SP),
+            cand(Some(0.0), 0.0, &[(0.7, 0.7), (0.8, 0.8)], SP),
+            // Best held out, but it segments the single-pose photographs worse.
+            cand(
+                Some(0.5),
+                0.0,
+                &[(0.9, 0.9), (0.9, 0.9)],
+                [1.0, 1.0, 0.21, 0.10],
+            ),
+            cand(None, 0.5, &[(0.6, 0.6), (0.7, 0.7)], SP),
+        ];
+        let s = pick_setting(&mut cs, 0.0, true, 0.002, 0.01);
+        assert_eq!(
+            s,
+            Some(Setting {
+                offset: Some(0.0),
+                colour_weight: 0.0
+            })
+        );
+        assert!((cs[1].held_out - 0.75).abs() < 1e-12);
+        assert!(!cs[2].admissible && cs[3].admissible);
+        // Without components to join, only the colour weight can change.
+        let s = pick_setting(&mut cs, 0.0, false, 0.002, 0.01);
+        assert_eq!(
+            s,
+            Some(Setting {
+                offset: None,
+                colour_weight: 0.5
+            })
+        );
+        // A gain below the least one keeps the base model.
+        assert_eq!(pick_setting(&mut cs, 0.0, false, 0.002, 0.1), None);
+    }
+
+    #[test]
+    fn offsets_per_object_or_for_all() {
+        let v: Vec<String> = ["0.25", "cup=-0.5"].iter().map(|s| s.to_string()).collect();
+        assert_eq!(offset_of(&v, "cup").unwrap(), -0.5);
+        assert_eq!(offset_of(&v, "shaker").unwrap(), 0.25);
+        assert_eq!(offset_of(&[], "cup").unwrap(), 0.0);
+        assert!(offset_of(&["cup=x".to_string()], "cup").is_err());
+        assert!(offset_of(&["inf".to_string()], "cup").is_err());
     }
 }
