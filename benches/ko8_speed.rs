@@ -80,7 +80,10 @@ fn print(label: &str, m: &[f64]) {
 
 fn main() {
     let root = PathBuf::from(arg("--data", "../shared/data/cmu_ko8".to_string()));
-    let dir = root.join("single/test/cup");
+    // `--image-dir multiple/test/bakingpan`: the multi-view part's
+    // photographs of an object (any side) instead of the cup's single-pose
+    // ones.
+    let dir = root.join(arg("--image-dir", "single/test/cup".to_string()));
     if !dir.is_dir() {
         println!(
             "skipped: {} not found (CMU_KO8 development data)",
@@ -108,9 +111,9 @@ fn main() {
         ..DetectOptions::default()
     };
     println!(
-        "{} cup test images of {}, median per image in ms over {iters} passes (stage times: the server's own)",
+        "{} test images of {}, median per image in ms over {iters} passes (stage times: the server's own)",
         imgs.len(),
-        root.display()
+        dir.display()
     );
     // `--threads 1` or `--models 8` run one case only (for profiling).
     let only_threads = arg("--threads", 0usize);
