@@ -701,41 +701,23 @@ fn join_cli_appends_components_and_refuses_bad_input() {
     assert_eq!(v1, 1);
     assert!((s1 - s0 - 0.5).abs() < 1e-4, "{s1} vs {s0}");
     // Refusals, each with status 2 and a message naming the cause.
-    let (code, _, stderr) = run(&[
-        "join",
-        "--base",
-        &p(&out),
-        "--add",
-        &p(&add),
-        "--out",
-        &p(&dir.join("again")),
-    ]);
-    assert_eq!(code, Some(2));
-    assert!(stderr.contains("already a joined model"), "{stderr}");
-    let (code, _, stderr) = run(&[
-        "join",
-        "--base",
-        &p(&base),
-        "--add",
-        &p(&add),
-        "--offset=abc",
-        "--out",
-        &p(&out),
-    ]);
-    assert_eq!(code, Some(2));
-    assert!(stderr.contains("--offset"), "{stderr}");
-    let (code, _, stderr) = run(&[
-        "join",
-        "--base",
-        &p(&base),
-        "--add",
-        &p(&add),
-        "--check-folds",
-        &p(&add),
-        "--out",
-        &p(&out),
-    ]);
-    assert_eq!(code, Some(2), "{stderr}");
-    assert!(stderr.contains("--ko8"), "{stderr}");
+    let refused = |base: &std::path::Path, extra: &[&str], cause: &str| {
+        let mut args = vec![
+            "join".to_string(),
+            "--base".into(),
+            p(base),
+            "--add".into(),
+            p(&add),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend(["--out".to_string(), p(&dir.join("refused"))]);
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let (code, _, stderr) = run(&refs);
+        assert_eq!(code, Some(2), "{stderr}");
+        assert!(stderr.contains(cause), "{stderr}");
+    };
+    refused(&out, &[], "already a joined model");
+    refused(&base, &["--offset=abc"], "--offset");
+    refused(&base, &["--check-folds", &p(&add)], "--ko8");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -66,6 +66,22 @@ pub(crate) struct JoinArgs {
     /// a detection's mask, added to its score).
     #[arg(long, value_delimiter = ',', default_value = "0,0.25,0.5")]
     pub(crate) colour_weights: Vec<f64>,
+    /// Detection thresholds above the base models' that `--check-folds`
+    /// then tries for each joined model in its chosen setting, keeping the
+    /// highest whose held-out figure stays within `--threshold-tolerance`
+    /// of the setting's at the base threshold (and whose single-pose
+    /// figures pass the guard): fewer locations reach the min-cuts and
+    /// fewer detections get masks. Sorted increasing.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "-0.5,-0.25",
+        allow_hyphen_values = true
+    )]
+    pub(crate) thresholds: Vec<f64>,
+    /// How much held-out figure a higher threshold may cost.
+    #[arg(long, default_value_t = 0.005)]
+    pub(crate) threshold_tolerance: f64,
     /// The colour weight of every output model without `--check-folds`
     /// (default: each base model's own).
     #[arg(long)]
@@ -88,6 +104,9 @@ struct Setting {
     offset: Option<f64>,
     /// [`crate::vision::detect::DetectParams::colour_weight`].
     colour_weight: f64,
+    /// The joined model's detection threshold (`None`: the base model's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    threshold: Option<f64>,
 }
 
 /// Figures of one setting for one object.
@@ -121,6 +140,9 @@ fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, Fail
         _ => m.clone(),
     };
     out.meta.detection.colour_weight = setting.colour_weight;
+    if let (Some(t), Some(_)) = (setting.threshold, setting.offset) {
+        out.meta.detection.threshold = t;
+    }
     Ok(out)
 }
 
@@ -175,7 +197,7 @@ fn choose_settings(
         || args.colour_weights.iter().any(|&w| w < 0.0)
     {
         return Err(Failure::input(
-            "--offsets must be finite numbers, --colour-weights finite and >= 0",
+            "--offsets and --thresholds must be finite numbers, --colour-weights finite and >= 0",
         ));
     }
     let data = Ko8Data::load(root, &[])
@@ -196,6 +218,7 @@ fn choose_settings(
                 .map(move |offset| Setting {
                     offset,
                     colour_weight,
+                    threshold: None,
                 })
         })
         .collect();
@@ -221,6 +244,7 @@ fn choose_settings(
         (settings.len() * (n + 1)) as u64,
         "settings on the folds and single-pose photographs",
     );
+    let mut folds = Vec::new();
     for (k, dir) in args.check_folds.iter().enumerate() {
         let fold = load_model_dir(dir)?;
         let images: Vec<&Sample> = data
@@ -246,6 +270,7 @@ fn choose_settings(
             }
             pb.inc(1);
         }
+        folds.push((fold, images, cache));
     }
     // The single-pose guard, with the components the output will carry.
     let images: Vec<&Sample> = data.images.iter().flatten().collect();
@@ -280,7 +305,116 @@ fn choose_settings(
             candidates: cs,
         });
     }
+    // Higher thresholds for the joined models (fewer locations reach the
+    // min-cuts, fewer masks), each object's chosen setting at each.
+    let mut thresholds: Vec<f64> = args
+        .thresholds
+        .iter()
+        .copied()
+        .filter(|&t| t > m0.meta.detection.threshold)
+        .collect();
+    thresholds.sort_by(f64::total_cmp);
+    if thresholds.is_empty()
+        || out
+            .iter()
+            .all(|c| c.setting.is_none_or(|s| s.offset.is_none()))
+    {
+        return Ok(out);
+    }
+    let pb = progress_bar(
+        (thresholds.len() * (n + 1)) as u64,
+        "thresholds of the joined models",
+    );
+    let at = |t: f64| -> Vec<Option<Setting>> {
+        out.iter()
+            .map(|c| {
+                c.setting.map(|s| Setting {
+                    threshold: s.offset.map(|_| t),
+                    ..s
+                })
+            })
+            .collect()
+    };
+    let each = |add: &[Model], chosen: &[Option<Setting>]| -> Result<Vec<Model>, Failure> {
+        base.iter()
+            .zip(chosen)
+            .map(|(m, s)| match s {
+                Some(s) => apply(m, add.iter().find(|a| a.meta.name == m.meta.name), *s),
+                None => Ok(m.clone()),
+            })
+            .collect()
+    };
+    let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
+    for &t in &thresholds {
+        let chosen = at(t);
+        let mut fold_scores = Vec::new();
+        for (fold, images, cache) in &folds {
+            fold_scores.push(evaluate(&data, images, &each(fold, &chosen)?, cache)?);
+            pb.inc(1);
+        }
+        let single = evaluate(&data, &images, &each(added, &chosen)?, &cache)?;
+        pb.inc(1);
+        for (mi, m) in base.iter().enumerate() {
+            let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {
+                continue;
+            };
+            let name = &m.meta.name;
+            let folds_of: Vec<(f64, f64)> = fold_scores
+                .iter()
+                .map(|sc| position(sc, name).map_or((0.0, 0.0), |i| (sc[i].auc, sc[i].auc_cross)))
+                .collect();
+            extra[mi].push(Candidate {
+                setting,
+                held_out: folds_of.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>()
+                    / folds_of.len().max(1) as f64,
+                folds: folds_of,
+                single: position(&single, name).map(|i| {
+                    let s = &single[i];
+                    [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
+                }),
+                admissible: false,
+            });
+        }
+    }
+    pb.finish_and_clear();
+    for (c, more) in out.iter_mut().zip(extra) {
+        let own = base
+            .iter()
+            .find(|m| m.meta.name == c.name)
+            .map_or(0.0, |m| m.meta.detection.colour_weight);
+        let plain = c
+            .candidates
+            .iter()
+            .find(|x| x.setting.offset.is_none() && x.setting.colour_weight == own)
+            .and_then(|x| x.single);
+        let Some(best) = c
+            .setting
+            .and_then(|s| c.candidates.iter().find(|x| x.setting == s))
+        else {
+            continue;
+        };
+        let floor = best.held_out - args.threshold_tolerance;
+        let mut more = more;
+        for x in &mut more {
+            x.admissible = x.held_out >= floor
+                && match (x.single, plain) {
+                    (Some(s), Some(p)) => single_within(&s, &p, args.single_tolerance),
+                    _ => true,
+                };
+        }
+        // The highest admissible threshold (they come in increasing order).
+        if let Some(x) = more.iter().rev().find(|x| x.admissible) {
+            c.setting = Some(x.setting);
+        }
+        c.candidates.extend(more);
+    }
     Ok(out)
+}
+
+/// Whether single-pose figures `s` are within `tol` of `p`'s: AUC and
+/// cross AUC no lower, segmentation and VOC errors no higher.
+fn single_within(s: &[f64; 4], p: &[f64; 4], tol: f64) -> bool {
+    s[0] >= p[0] - tol && s[1] >= p[1] - tol && s[2] <= p[2] + tol && s[3] <= p[3] + tol
 }
 
 /// The best admissible setting by its held-out figure (mean over the
@@ -307,9 +441,7 @@ fn pick_setting(
         .cloned();
     for c in cs.iter_mut() {
         let guard = match (c.single, plain.as_ref().and_then(|p| p.single)) {
-            (Some(s), Some(p)) => {
-                s[0] >= p[0] - tol && s[1] >= p[1] - tol && s[2] <= p[2] + tol && s[3] <= p[3] + tol
-            }
+            (Some(s), Some(p)) => single_within(&s, &p, tol),
             _ => true,
         };
         c.admissible = guard && (c.setting.offset.is_none() || has_add);
@@ -391,6 +523,7 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
             None => Some(Setting {
                 offset: Some(offset_of(&args.offset, name)?),
                 colour_weight: args.colour_weight.unwrap_or(m.meta.detection.colour_weight),
+                threshold: None,
             }),
         };
         let out = match setting.filter(|_| chosen) {
@@ -405,9 +538,11 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
                     }
                 }
                 let joined = match (setting.offset, other) {
-                    (Some(o), Some(a)) => {
-                        format!("+ {} component(s) at offset {o:+.3}", a.views.len())
-                    }
+                    (Some(o), Some(a)) => format!(
+                        "+ {} component(s) at offset {o:+.3}, threshold {}",
+                        a.views.len(),
+                        j.meta.detection.threshold
+                    ),
                     _ => "not joined".into(),
                 };
                 println!(
@@ -431,7 +566,7 @@ pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
 /// The table of `--check-folds`' figures.
 fn print_choice(choice: &[Choice]) {
     println!(
-        "object      offset colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
+        "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
     );
     for ch in choice {
         for c in &ch.candidates {
@@ -451,9 +586,11 @@ fn print_choice(choice: &[Choice]) {
             println!(
                 "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {}{mark}",
                 ch.name,
-                c.setting
-                    .offset
-                    .map_or("none".into(), |o| format!("{o:+.2}")),
+                match (c.setting.offset, c.setting.threshold) {
+                    (None, _) => "none".to_string(),
+                    (Some(o), None) => format!("{o:+.2}"),
+                    (Some(o), Some(t)) => format!("{o:+.2} t{t}"),
+                },
                 c.setting.colour_weight,
                 c.held_out,
                 folds.join(" "),
@@ -477,6 +614,7 @@ mod tests {
             setting: Setting {
                 offset,
                 colour_weight,
+                threshold: None,
             },
             folds: folds.to_vec(),
             held_out: 0.0,
@@ -506,7 +644,8 @@ mod tests {
             s,
             Some(Setting {
                 offset: Some(0.0),
-                colour_weight: 0.0
+                colour_weight: 0.0,
+                threshold: None
             })
         );
         assert!((cs[1].held_out - 0.75).abs() < 1e-12);
@@ -517,7 +656,8 @@ mod tests {
             s,
             Some(Setting {
                 offset: None,
-                colour_weight: 0.5
+                colour_weight: 0.5,
+                threshold: None
             })
         );
         // A gain below the least one keeps the base model.
