@@ -2,7 +2,8 @@
 //! view components of a model trained apart (views and box-only
 //! photographs), their scores moved by an offset so that a view component
 //! fires where the single-pose one does not. With `--check-folds`, whether
-//! to join an object and at which offset is chosen per object by
+//! to join an object, at which offset, with which colour-agreement weight
+//! and at which detection threshold is chosen per object by
 //! cross-validation over its box-only photographs, guarded by the
 //! single-pose photographs.
 
