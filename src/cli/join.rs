@@ -147,11 +147,25 @@ fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, Fail
     Ok(out)
 }
 
-/// `base`'s models in `setting`, each with `add`'s model of its object.
-fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, Failure> {
+/// `base`'s models each in its setting (`None`: unchanged), each with
+/// `add`'s model of its object.
+fn applied_each(
+    base: &[Model],
+    add: &[Model],
+    settings: &[Option<Setting>],
+) -> Result<Vec<Model>, Failure> {
     base.iter()
-        .map(|m| apply(m, add.iter().find(|a| a.meta.name == m.meta.name), setting))
+        .zip(settings)
+        .map(|(m, s)| match s {
+            Some(s) => apply(m, add.iter().find(|a| a.meta.name == m.meta.name), *s),
+            None => Ok(m.clone()),
+        })
         .collect()
+}
+
+/// `base`'s models all in `setting`.
+fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, Failure> {
+    applied_each(base, add, &vec![Some(setting); base.len()])
 }
 
 /// Detections of `models` on `images` scored per object.
@@ -336,24 +350,20 @@ fn choose_settings(
             })
             .collect()
     };
-    let each = |add: &[Model], chosen: &[Option<Setting>]| -> Result<Vec<Model>, Failure> {
-        base.iter()
-            .zip(chosen)
-            .map(|(m, s)| match s {
-                Some(s) => apply(m, add.iter().find(|a| a.meta.name == m.meta.name), *s),
-                None => Ok(m.clone()),
-            })
-            .collect()
-    };
     let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
     for &t in &thresholds {
         let chosen = at(t);
         let mut fold_scores = Vec::new();
         for (fold, images, cache) in &folds {
-            fold_scores.push(evaluate(&data, images, &each(fold, &chosen)?, cache)?);
+            fold_scores.push(evaluate(
+                &data,
+                images,
+                &applied_each(base, fold, &chosen)?,
+                cache,
+            )?);
             pb.inc(1);
         }
-        let single = evaluate(&data, &images, &each(added, &chosen)?, &cache)?;
+        let single = evaluate(&data, &images, &applied_each(base, added, &chosen)?, &cache)?;
         pb.inc(1);
         for (mi, m) in base.iter().enumerate() {
             let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {
