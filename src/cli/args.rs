@@ -54,13 +54,21 @@ pub(crate) struct TrainSettings {
     /// Iterations over cached locations per full search, at most.
     #[arg(long)]
     pub(crate) max_inner: Option<usize>,
-    /// Min-cuts per image in hard-example mining passes.
+    /// Locations per image, in order of their bound, that a hard-example
+    /// mining search reaches (default 300; `mesh --photos`: 1024).
     #[arg(long)]
     pub(crate) mining_budget: Option<usize>,
-    /// First full searches that mine hard examples with a min-cut budget
-    /// instead of being exact (default 0: every full search is exact).
+    /// First full searches that mine hard examples with a budget instead of
+    /// being exact; a mining search that finds nothing is followed by an
+    /// exact one, which decides convergence (default 0: every full search
+    /// is exact; `mesh --photos`: every pass mines).
     #[arg(long)]
     pub(crate) mining_passes: Option<usize>,
+    /// `mesh --photos`: check a mining search that finds nothing by an
+    /// exact one before the training ends (slower; by default the mining
+    /// search decides there).
+    #[arg(long)]
+    pub(crate) exact_check: bool,
     /// Most locations cached per image between full searches.
     #[arg(long)]
     pub(crate) cache_size: Option<usize>,

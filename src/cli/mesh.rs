@@ -1000,6 +1000,9 @@ fn train_with_photo_boxes(
         // give no background examples, and the folds hold out photographs
         // alone.
         renders: Arc::new(renders.iter().map(|s| s.image.clone()).collect()),
+        // Budgeted full searches until one finds nothing, then an exact
+        // one: both sides of the check alike.
+        mining: true,
     };
     let mv = MultiViewParams {
         latent_rounds: args.latent_rounds,

@@ -113,12 +113,25 @@ pub struct TrainParams {
     pub max_inner: usize,
     /// Random locations per image that seed the cache (initialisation).
     pub init_locations: usize,
-    /// The first `mining_passes` full searches are hard-example mining
-    /// with at most `mining_budget` min-cuts per image (in order of the
-    /// exact bound), not exact; the others are exact. Exact searches are
-    /// cheap enough with the chain bound that the default mines none.
+    /// The first `mining_passes` full searches are hard-example mining:
+    /// each image's search reaches at most `mining_budget` locations (in
+    /// order of the stage-1 bound) instead of every one whose bound says
+    /// it might win. A mining search that finds no violated constraint is
+    /// followed by an exact one, which decides convergence (when it finds
+    /// violations, mining resumes). The default mines none; the mesh
+    /// route mines: there an exact search reached about 9,600 locations
+    /// per example, nearly all cut off before their min-cut finished, and
+    /// where it beat the example's cached best it did so among the first
+    /// 256 in 97% of the first round's searches (LM-O duck) and never
+    /// beyond 4,096.
     pub mining_passes: usize,
     pub mining_budget: usize,
+    /// Whether a mining search that finds nothing is checked by an exact
+    /// one (true), or ends the training as converged as far as the budget
+    /// sees (false: the mesh route, where an exact search cost as much as
+    /// 7-10 mining ones, and on the LM-O duck each round's first exact
+    /// check found nothing beyond the tolerance).
+    pub exact_check: bool,
     /// Most locations kept in an image's cache (the least recently most
     /// violated leave first).
     pub cache_size: usize,
@@ -154,11 +167,15 @@ pub struct TrainParams {
     /// negatives, where the 1-slack loss of the positive itself weighs only
     /// its single most violated window. 0: none.
     pub background_regions: usize,
-    /// Positive images that give no background examples (renders drawn
-    /// over the photographs, whose regions would repeat the photographs'
-    /// own). Not saved: the provenance names the route that set it.
+    /// Renders drawn over the training photographs: they give no
+    /// background examples (their regions would repeat the photographs'
+    /// own), and as positives they are searched only at windows
+    /// overlapping their box by IoU [`loss::BACKGROUND_MAX_IOU`] or more:
+    /// the windows away from the box show the photograph's own clutter,
+    /// which its background examples search already. Not saved: the
+    /// provenance names the route that set it.
     #[serde(skip)]
-    pub background_exclude: Arc<HashSet<PathBuf>>,
+    pub renders: Arc<HashSet<PathBuf>>,
     /// Detection threshold saved in the model (score units; the SVM margin
     /// puts positives at >= 1 and negatives at <= -1). The default, -0.75,
     /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
@@ -184,6 +201,7 @@ impl Default for TrainParams {
             init_locations: 30,
             mining_passes: 0,
             mining_budget: 300,
+            exact_check: true,
             cache_size: 12,
             positive_share: 0.5,
             box_share: None,
@@ -195,7 +213,7 @@ impl Default for TrainParams {
             pair_mode: PairwiseMode::Grid,
             seed: 1,
             background_regions: 0,
-            background_exclude: Arc::default(),
+            renders: Arc::default(),
             threshold: -0.75,
         }
     }
@@ -260,6 +278,9 @@ struct Example {
     background: Option<Background>,
     /// Where its hard locations are kept for later trainings.
     key: HardKey,
+    /// A render's positive: searched only near its box
+    /// ([`TrainParams::renders`]).
+    near_only: bool,
 }
 
 struct GroundTruth {
@@ -418,7 +439,7 @@ pub fn train_joint(
             let Some(a) = s.annotation.as_ref() else {
                 continue;
             };
-            if params.background_exclude.contains(&s.image) {
+            if params.renders.contains(&s.image) {
                 continue;
             }
             match backgrounds.iter_mut().find(|(p, _)| *p == &s.image) {
@@ -494,16 +515,35 @@ pub fn train_joint(
             }
             None => None,
         };
-        // Seeds: random locations away from the object.
+        // Seeds: random locations away from the object (a render's: near
+        // it, where its search keeps).
+        let near_only = truth.is_some() && params.renders.contains(&s.image);
+        let near: Vec<Location>;
+        let candidates: &[Location] = match (&truth, near_only) {
+            (Some(t), true) => {
+                near = locs
+                    .iter()
+                    .filter(|l| {
+                        **l != t.location
+                            && box_iou(det0.grid(&pyr, l).pixel_box(), t.bbox)
+                                >= loss::BACKGROUND_MAX_IOU
+                    })
+                    .copied()
+                    .collect();
+                &near
+            }
+            _ => &locs,
+        };
         let mut seeds = Vec::new();
         for _ in 0..params.init_locations * 4 {
-            if seeds.len() >= params.init_locations || locs.is_empty() {
+            if seeds.len() >= params.init_locations || candidates.is_empty() {
                 break;
             }
-            let l = locs[rng.range_usize(0, locs.len())];
-            let far = truth
-                .as_ref()
-                .is_none_or(|t| box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < 0.3);
+            let l = candidates[rng.range_usize(0, candidates.len())];
+            let far = near_only
+                || truth.as_ref().is_none_or(|t| {
+                    box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < loss::BACKGROUND_MAX_IOU
+                });
             if far {
                 seeds.push(l);
             }
@@ -528,6 +568,7 @@ pub fn train_joint(
             cache: seeds,
             background: None,
             key,
+            near_only,
         });
     }
     for (image, instances) in &backgrounds {
@@ -566,6 +607,7 @@ pub fn train_joint(
                 cache: seeds,
                 background: Some(bg),
                 key,
+                near_only: false,
             });
         }
     }
@@ -638,7 +680,8 @@ pub fn train_joint(
         let det = Detector::new(&views)?;
         let t = Instant::now();
         // Budgeted searches mine hard examples cheaply while the weights
-        // still move; the last passes are exact and decide convergence.
+        // still move; exact ones decide convergence (or the mining search
+        // does, without `exact_check`).
         let exact = pass >= params.mining_passes || approx_done;
         let budget = (!exact).then_some(params.mining_budget);
         let round = search::search(&det, &layout, &mut examples, params, true, budget)?;
@@ -657,13 +700,17 @@ pub fn train_joint(
             round.loss
         ));
         if viol <= xi + params.epsilon {
-            if exact {
+            if exact || !params.exact_check {
                 report.converged = true;
                 break;
             }
             approx_done = true;
             continue;
         }
+        // An exact search that still found violations: mining goes on
+        // (while its passes last), and the next exact search comes when a
+        // budgeted one finds nothing again.
+        approx_done = false;
         ws.add(round.plane);
         let sol = ws.solve(params.c, &nonneg)?;
         w = sol.w;

@@ -601,11 +601,11 @@ impl<'a> Detector<'a> {
         stats.pruned_stage1 = stats.locations.saturating_sub(cands.len());
         stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
         // Visit in order of the bound (ties in a fixed order).
-        cands.sort_by(|a, b| {
+        let order = |a: &Candidate, b: &Candidate| {
             a.bound
                 .total_cmp(&b.bound)
                 .then((a.level, a.view, a.y, a.x).cmp(&(b.level, b.view, b.y, b.x)))
-        });
+        };
 
         let t = Instant::now();
         // Branch and bound: locations are visited in order of their bound,
@@ -638,35 +638,59 @@ impl<'a> Detector<'a> {
         } else {
             cands.len().max(1)
         };
+        // A budget reaches only the first blocks: those alone are sorted.
+        if let Some(b) = budget {
+            let keep = b.div_ceil(chunk) * chunk;
+            if keep < cands.len() {
+                cands.select_nth_unstable_by(keep, order);
+                cands.truncate(keep);
+            }
+        }
+        cands.sort_by(order);
+        let mut own_scratch = Scratch::default();
         for (bi, block) in cands.chunks(chunk).enumerate() {
             let worst = best.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             if (single || ranked) && block[0].bound - margin(block[0].bound) > worst {
                 break;
             }
-            if budget.is_some_and(|b| stats.min_cuts >= b) || params.deadline.passed() {
+            // A budget counts the locations reached in order of the bound,
+            // whether their min-cut finished or was cut off.
+            if budget.is_some_and(|b| bi * chunk >= b) || params.deadline.passed() {
                 break;
             }
             let cutoff = &best;
             let settled_now = &settled;
-            let out: Vec<Option<Solved>> = block
-                .par_iter()
-                .map_init(Scratch::default, |s, c| {
-                    let group = self.groups[c.view];
-                    let lower = c.bound - margin(c.bound);
-                    if (single || ranked) && lower > cutoff[group] {
+            let solve_one = |s: &mut Scratch, c: &Candidate| {
+                let group = self.groups[c.view];
+                let lower = c.bound - margin(c.bound);
+                if (single || ranked) && lower > cutoff[group] {
+                    return None;
+                }
+                if settled_now.iter().any(|&(g, e, _)| g == group && e < lower) {
+                    let b = self.grid(pyr, &c.location()).pixel_box();
+                    if settled_now
+                        .iter()
+                        .any(|&(g, e, k)| g == group && e < lower && box_iou(k, b) > params.nms_iou)
+                    {
                         return None;
                     }
-                    if settled_now.iter().any(|&(g, e, _)| g == group && e < lower) {
-                        let b = self.grid(pyr, &c.location()).pixel_box();
-                        if settled_now.iter().any(|&(g, e, k)| {
-                            g == group && e < lower && box_iou(k, b) > params.nms_iou
-                        }) {
-                            return None;
-                        }
-                    }
-                    self.solve(pyr, c, cutoff[group], params.prune, aug, s)
-                })
-                .collect();
+                }
+                self.solve(pyr, c, cutoff[group], params.prune, aug, s)
+            };
+            // A budgeted search is training's, whose examples already run
+            // in parallel: its short blocks run in turn (in parallel, 2 cores
+            // spent a fifth of a mining search switching threads).
+            let out: Vec<Option<Solved>> = if budget.is_some() {
+                block
+                    .iter()
+                    .map(|c| solve_one(&mut own_scratch, c))
+                    .collect()
+            } else {
+                block
+                    .par_iter()
+                    .map_init(Scratch::default, solve_one)
+                    .collect()
+            };
             for r in out.into_iter().flatten() {
                 stats.min_cuts += 1;
                 if r.energy <= cut {
