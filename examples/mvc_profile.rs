@@ -55,7 +55,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             kind: LossKind::SdHop,
             seg_weight: 1.0,
             views: None,
-            near: None,
         };
         if std::env::var("BOUNDS").is_ok() && !pos {
             bound_gaps(&det, &pyr);

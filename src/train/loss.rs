@@ -110,12 +110,6 @@ pub struct TruthLoss<'a> {
     /// objects trained jointly (`None`: every component): a box of another
     /// object's component is a false positive wherever it lies (loss 1).
     pub views: Option<&'a [bool]>,
-    /// Only the windows overlapping the truth's box by at least this IoU
-    /// are outputs (`None`: every window). A render drawn over a
-    /// photograph searches near its box alone: the windows away from it
-    /// show the photograph's own clutter, which the photograph's
-    /// background examples search ([`BACKGROUND_MAX_IOU`]).
-    pub near: Option<f64>,
 }
 
 impl TruthLoss<'_> {
@@ -162,27 +156,6 @@ impl TruthLoss<'_> {
 impl LossAugment for TruthLoss<'_> {
     fn max_loss(&self) -> f64 {
         self.seg_weight.max(1.0)
-    }
-
-    fn excludes(&self, _view: usize, grid: &CellGrid) -> bool {
-        match (&self.truth, self.near) {
-            (Some(t), Some(min_iou)) => box_iou(t.bbox, grid.pixel_box()) < min_iou,
-            _ => false,
-        }
-    }
-
-    fn centres(&self) -> Option<(f64, f64, f64, f64)> {
-        let (t, min_iou) = (self.truth.as_ref()?, self.near?);
-        // A window overlapping the box by IoU `m` has its centre within
-        // `1 / (2m)` of the box's width (height) of the box's centre: its
-        // overlap along x is at least `m` times the wider of the two, so
-        // the window is at most `1 / m` times as wide, and the centres are
-        // at most half the widths' sum less the overlap apart.
-        let (x0, y0, x1, y1) = t.bbox;
-        let reach = 0.5 / min_iou.max(1e-3);
-        let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
-        let (rx, ry) = (reach * (x1 - x0), reach * (y1 - y0));
-        Some((cx - rx, cy - ry, cx + rx, cy + ry))
     }
 
     fn augment(&self, view: usize, grid: &CellGrid, problem: &mut BoxProblem) {
@@ -377,7 +350,6 @@ mod tests {
                 kind: LossKind::SdHop,
                 seg_weight: 1.0,
                 views: None,
-                near: None,
             };
             assert_eq!(at(&g).loss(0, &g, &tv), 0.0);
             let far = grid(g.cell_x + 6, g.cell_y, 4, 5, 1.0);
@@ -473,7 +445,6 @@ mod tests {
                 seg_weight: 1.0,
                 // Component 1 is another object's in a joint model.
                 views: Some(&[true, false]),
-                near: None,
             };
             // The truth's own component, then another object's: loss 1
             // for every labelling, even on the truth's box.
@@ -499,55 +470,5 @@ mod tests {
                 assert!((aug.energy(&v) - direct).abs() < 1e-12);
             }
         }
-    }
-
-    /// A render's search near its box: every window overlapping the box by
-    /// the IoU asked is kept and centred inside `centres`, every other
-    /// window is left out; without `near` nothing is.
-    #[test]
-    fn near_search_keeps_exactly_the_windows_overlapping_the_box() {
-        let mut rng = SplitMix64::new(17);
-        let m = random_mask(&mut rng, 200, 160);
-        let im = IntegralMask::new(&m);
-        let mut kept = 0;
-        for case in 0..400 {
-            let truth_box = (
-                rng.range_f64(20.0, 80.0),
-                rng.range_f64(20.0, 60.0),
-                rng.range_f64(90.0, 150.0),
-                rng.range_f64(70.0, 120.0),
-            );
-            let min_iou = [0.3, 0.5][case % 2];
-            let at = |near| TruthLoss {
-                truth: Some(Truth {
-                    bbox: truth_box,
-                    visible: &im,
-                }),
-                kind: LossKind::SdHop,
-                seg_weight: 1.0,
-                views: None,
-                near,
-            };
-            let (near, all) = (at(Some(min_iou)), at(None));
-            let (x0, y0, x1, y1) = near.centres().expect("a truth and `near`");
-            assert!(all.centres().is_none());
-            let g = grid(
-                rng.range_usize(0, 25) as isize,
-                rng.range_usize(0, 20) as isize,
-                rng.range_usize(4, 16),
-                rng.range_usize(4, 16),
-                [1.0, 0.8, 0.6][case % 3],
-            );
-            let b = g.pixel_box();
-            let iou = box_iou(truth_box, b);
-            assert!(!all.excludes(0, &g));
-            assert_eq!(near.excludes(0, &g), iou < min_iou, "IoU {iou}");
-            if iou >= min_iou {
-                kept += 1;
-                let (cx, cy) = (0.5 * (b.0 + b.2), 0.5 * (b.1 + b.3));
-                assert!((x0..=x1).contains(&cx) && (y0..=y1).contains(&cy));
-            }
-        }
-        assert!(kept > 10, "only {kept} windows overlapped");
     }
 }

@@ -169,11 +169,7 @@ pub struct TrainParams {
     pub background_regions: usize,
     /// Renders drawn over the training photographs: they give no
     /// background examples (their regions would repeat the photographs'
-    /// own), and as positives they are searched only at windows
-    /// overlapping their box by IoU [`loss::BACKGROUND_MAX_IOU`] or more:
-    /// the windows away from the box show the photograph's own clutter,
-    /// which its background examples search already. Not saved: the
-    /// provenance names the route that set it.
+    /// own). Not saved: the provenance names the route that set it.
     #[serde(skip)]
     pub renders: Arc<HashSet<PathBuf>>,
     /// Detection threshold saved in the model (score units; the SVM margin
@@ -278,9 +274,6 @@ struct Example {
     background: Option<Background>,
     /// Where its hard locations are kept for later trainings.
     key: HardKey,
-    /// A render's positive: searched only near its box
-    /// ([`TrainParams::renders`]).
-    near_only: bool,
 }
 
 struct GroundTruth {
@@ -515,35 +508,16 @@ pub fn train_joint(
             }
             None => None,
         };
-        // Seeds: random locations away from the object (a render's: near
-        // it, where its search keeps).
-        let near_only = truth.is_some() && params.renders.contains(&s.image);
-        let near: Vec<Location>;
-        let candidates: &[Location] = match (&truth, near_only) {
-            (Some(t), true) => {
-                near = locs
-                    .iter()
-                    .filter(|l| {
-                        **l != t.location
-                            && box_iou(det0.grid(&pyr, l).pixel_box(), t.bbox)
-                                >= loss::BACKGROUND_MAX_IOU
-                    })
-                    .copied()
-                    .collect();
-                &near
-            }
-            _ => &locs,
-        };
+        // Seeds: random locations away from the object.
         let mut seeds = Vec::new();
         for _ in 0..params.init_locations * 4 {
-            if seeds.len() >= params.init_locations || candidates.is_empty() {
+            if seeds.len() >= params.init_locations || locs.is_empty() {
                 break;
             }
-            let l = candidates[rng.range_usize(0, candidates.len())];
-            let far = near_only
-                || truth.as_ref().is_none_or(|t| {
-                    box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < loss::BACKGROUND_MAX_IOU
-                });
+            let l = locs[rng.range_usize(0, locs.len())];
+            let far = truth
+                .as_ref()
+                .is_none_or(|t| box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < 0.3);
             if far {
                 seeds.push(l);
             }
@@ -568,7 +542,6 @@ pub fn train_joint(
             cache: seeds,
             background: None,
             key,
-            near_only,
         });
     }
     for (image, instances) in &backgrounds {
@@ -607,7 +580,6 @@ pub fn train_joint(
                 cache: seeds,
                 background: Some(bg),
                 key,
-                near_only: false,
             });
         }
     }

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 
 use super::layout::Layout;
-use super::loss::{BackgroundLoss, Truth, TruthLoss, BACKGROUND_MAX_IOU};
+use super::loss::{BackgroundLoss, Truth, TruthLoss};
 use super::qp::Plane;
 use super::{Example, Found, Round, TrainError, TrainParams};
 use crate::vision::detect::{DenseBounds, Detector, LossAugment};
@@ -60,7 +60,6 @@ pub(super) fn search(
                     .truth
                     .as_ref()
                     .and_then(|t| t.views.as_deref().map(Vec::as_slice)),
-                near: ex.near_only.then_some(BACKGROUND_MAX_IOU),
             };
             let background = ex
                 .background
