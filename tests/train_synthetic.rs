@@ -418,13 +418,7 @@ impl LossAugment for Unrestricted<'_> {
 fn background_regions_train_from_positive_scenes_alone() {
     use sdhop::train::loss::{Background, BackgroundLoss};
     use sdhop::vision::detect::{DetectParams, Detector};
-    let params = TrainParams {
-        template_scale: 1.0,
-        max_passes: 6,
-        init_locations: 20,
-        background_regions: 4,
-        ..TrainParams::default()
-    };
+    let params = background_params();
     let cache = PyramidCache::default();
     let made: Vec<(Sample, Scene)> = (0..10)
         .map(|seed| make_sample(&cache, &params, &OBJECT, 300 + seed, Some("thing")))
@@ -500,6 +494,18 @@ fn background_regions_train_from_positive_scenes_alone() {
     assert!(hits >= n - 1, "{hits}/{n} held-out objects found");
 }
 
+/// Six passes over small scenes, each positive photograph also four
+/// background examples.
+fn background_params() -> TrainParams {
+    TrainParams {
+        template_scale: 1.0,
+        max_passes: 6,
+        init_locations: 20,
+        background_regions: 4,
+        ..TrainParams::default()
+    }
+}
+
 /// A training on a cache an earlier training of the same object used
 /// starts from that training's hard locations in each example (latent
 /// rounds and cross-validation folds train again on the same images): it
@@ -507,13 +513,7 @@ fn background_regions_train_from_positive_scenes_alone() {
 /// time, and the warm-started model finds held-out objects as well.
 #[test]
 fn a_second_training_starts_from_the_hard_locations_of_the_first() {
-    let params = TrainParams {
-        template_scale: 1.0,
-        max_passes: 6,
-        init_locations: 20,
-        background_regions: 4,
-        ..TrainParams::default()
-    };
+    let params = background_params();
     let pb = indicatif::ProgressBar::hidden();
     // The scenes' pyramids into `cache` (a pyramid put in anew forgets
     // its hard locations).
@@ -554,13 +554,7 @@ fn a_second_training_starts_from_the_hard_locations_of_the_first() {
 /// training does; with the check, a converged training ran one.
 #[test]
 fn mining_searches_alone_train_a_detector() {
-    let base = TrainParams {
-        template_scale: 1.0,
-        max_passes: 6,
-        init_locations: 20,
-        background_regions: 4,
-        ..TrainParams::default()
-    };
+    let base = background_params();
     let pb = indicatif::ProgressBar::hidden();
     let cache = PyramidCache::default();
     let samples: Vec<Sample> = (0..10)
