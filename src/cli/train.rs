@@ -477,9 +477,10 @@ pub(crate) struct BoxRoute {
     /// no background examples, stay in every box-correction fold's
     /// training and are never held out.
     pub(crate) renders: Arc<HashSet<PathBuf>>,
-    /// Full searches mine with a budget until one finds nothing, then an
-    /// exact one decides ([`TrainParams::mining_passes`]), where the flags
-    /// leave it open.
+    /// Every full search mines with a budget ([`TrainParams::mining_passes`],
+    /// [`MINING_BUDGET`]) where the flags leave it open; the first that
+    /// finds nothing ends the training, or is checked by an exact one with
+    /// `--exact-check` ([`TrainParams::exact_check`]).
     pub(crate) mining: bool,
 }
 

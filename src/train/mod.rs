@@ -118,7 +118,8 @@ pub struct TrainParams {
     /// order of the stage-1 bound) instead of every one whose bound says
     /// it might win. A mining search that finds no violated constraint is
     /// followed by an exact one, which decides convergence (when it finds
-    /// violations, mining resumes). The default mines none; the mesh
+    /// violations, mining resumes), or, without `exact_check`, ends the
+    /// training itself. The default mines none; the mesh
     /// route mines: there an exact search reached about 9,600 locations
     /// per example, nearly all cut off before their min-cut finished, and
     /// where it beat the example's cached best it did so among the first
