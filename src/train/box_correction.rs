@@ -47,6 +47,19 @@ pub struct HeldOut {
     /// Annotated objects and photographs scanned.
     pub objects: usize,
     pub photos: usize,
+    /// The same detections photograph by photograph (for comparisons
+    /// that resample photographs: [`HeldOut::wins_over`]).
+    pub per_photo: Vec<PhotoFound>,
+}
+
+/// What a model found on one held-out photograph.
+#[derive(Clone, Debug, Default)]
+pub struct PhotoFound {
+    pub image: PathBuf,
+    /// Its annotated objects.
+    pub objects: usize,
+    /// Its detections, as in [`HeldOut::scored`].
+    pub scored: Vec<(f64, bool)>,
 }
 
 impl HeldOut {
@@ -57,11 +70,60 @@ impl HeldOut {
         (self.objects > 0).then(|| auc_curve(self.scored.clone(), self.objects, self.photos).0)
     }
 
+    /// How often these detections' AUC beats `other`'s when the
+    /// photographs both scanned are drawn again with replacement
+    /// (`resamples` paired bootstrap draws, ties counting half): the
+    /// confidence that the difference of the two AUCs is not the chance of
+    /// which photographs were held out. `None` without a photograph both
+    /// scanned.
+    pub fn wins_over(&self, other: &HeldOut, resamples: usize) -> Option<f64> {
+        let theirs: std::collections::HashMap<&PathBuf, &PhotoFound> =
+            other.per_photo.iter().map(|p| (&p.image, p)).collect();
+        let pairs: Vec<(&PhotoFound, &PhotoFound)> = self
+            .per_photo
+            .iter()
+            .filter_map(|p| theirs.get(&p.image).map(|q| (p, *q)))
+            .collect();
+        if pairs.is_empty() || resamples == 0 {
+            return None;
+        }
+        // `mine`: these detections' side of each pair, else `other`'s.
+        let auc = |draw: &[usize], mine: bool| {
+            let found: Vec<&PhotoFound> = draw
+                .iter()
+                .map(|&i| if mine { pairs[i].0 } else { pairs[i].1 })
+                .collect();
+            let objects: usize = found.iter().map(|p| p.objects).sum();
+            let scored: Vec<(f64, bool)> = found
+                .iter()
+                .flat_map(|p| p.scored.iter().copied())
+                .collect();
+            (objects > 0).then(|| auc_curve(scored, objects, found.len()).0)
+        };
+        // Fixed seed: the same held-out detections always decide alike.
+        let mut rng = crate::vision::rng::SplitMix64::new(0x5d_4097);
+        let mut wins = 0.0;
+        let mut draw = vec![0usize; pairs.len()];
+        for _ in 0..resamples {
+            for d in draw.iter_mut() {
+                *d = rng.range_usize(0, pairs.len());
+            }
+            // A draw without an object scores neither side: a tie.
+            wins += match (auc(&draw, true), auc(&draw, false)) {
+                (Some(a), Some(b)) if a > b => 1.0,
+                (Some(a), Some(b)) if a < b => 0.0,
+                _ => 0.5,
+            };
+        }
+        Some(wins / resamples as f64)
+    }
+
     fn extend(&mut self, other: HeldOut) {
         self.offsets.extend(other.offsets);
         self.scored.extend(other.scored);
         self.objects += other.objects;
         self.photos += other.photos;
+        self.per_photo.extend(other.per_photo);
     }
 }
 
@@ -105,6 +167,11 @@ pub fn held_out(
         dets.sort_by(|x, y| y.score.total_cmp(&x.score));
         out.photos += 1;
         out.objects += boxes.len();
+        let mut photo = PhotoFound {
+            image: image.clone(),
+            objects: boxes.len(),
+            scored: Vec::with_capacity(dets.len()),
+        };
         for b in &boxes {
             if let Some(d) = dets.iter().find(|d| box_iou(d.bbox, *b) >= MIN_OVERLAP) {
                 out.offsets.push(offset(d.bbox, *b));
@@ -121,7 +188,9 @@ pub fn held_out(
                 taken[i] = true;
             }
             out.scored.push((d.score, hit.is_some()));
+            photo.scored.push((d.score, hit.is_some()));
         }
+        out.per_photo.push(photo);
     }
     Ok(out)
 }
@@ -271,11 +340,60 @@ mod tests {
             scored: vec![(3.0, true), (2.0, false), (1.0, false), (0.5, true)],
             objects: 2,
             photos: 2,
+            per_photo: Vec::new(),
         };
         let auc = found.auc().unwrap();
         // Recall 0.5 over FPPI [0, 1): the second object comes at FPPI 1.
         assert!((auc - 0.5).abs() < 1e-9, "{auc}");
         assert!(HeldOut::default().auc().is_none());
+    }
+
+    /// Held-out detections on `n` photographs of one object each: the
+    /// object found first (above every false positive) on the photographs
+    /// `found` says, missed (found below a false positive) on the others.
+    fn held_out_on(n: usize, found: impl Fn(usize) -> bool) -> HeldOut {
+        let mut h = HeldOut::default();
+        for i in 0..n {
+            let scored = match found(i) {
+                true => vec![(2.0, true), (0.0, false)],
+                false => vec![(1.0, false), (-1.0, true)],
+            };
+            h.extend(HeldOut {
+                offsets: Vec::new(),
+                scored: scored.clone(),
+                objects: 1,
+                photos: 1,
+                per_photo: vec![PhotoFound {
+                    image: PathBuf::from(format!("p{i}")),
+                    objects: 1,
+                    scored,
+                }],
+            });
+        }
+        h
+    }
+
+    #[test]
+    fn paired_resampling_tells_a_real_gain_from_a_chance_one() {
+        // Both find 30 of 40 but on different photographs: a tie by the
+        // AUC, about half of the draws either way.
+        let a = held_out_on(40, |i| i >= 10);
+        let b = held_out_on(40, |i| i < 30);
+        let even = a.wins_over(&b, 500).unwrap();
+        assert!((0.3..0.7).contains(&even), "{even}");
+        // One finds 38 of 40, the other 20 of them: nearly every draw.
+        let good = held_out_on(40, |i| i >= 2);
+        let poor = held_out_on(40, |i| i % 2 == 0);
+        assert!(good.auc().unwrap() > poor.auc().unwrap());
+        assert!(good.wins_over(&poor, 500).unwrap() > 0.99);
+        assert!(poor.wins_over(&good, 500).unwrap() < 0.01);
+        // One photograph more found of 40: a gain, not beyond chance.
+        let one_more = held_out_on(40, |i| i >= 9);
+        assert!(one_more.auc().unwrap() > a.auc().unwrap());
+        let p = one_more.wins_over(&a, 500).unwrap();
+        assert!((0.5..0.9).contains(&p), "{p}");
+        // No photograph in common: no answer.
+        assert!(a.wins_over(&HeldOut::default(), 500).is_none());
     }
 
     #[test]
