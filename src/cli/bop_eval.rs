@@ -17,7 +17,7 @@ use crate::data::bop::{Bop, LINEMOD_NAMES};
 use crate::eval::bop_detect::{add_s, score_object, scored_instance, DetectScore};
 use crate::eval::bop_pose::{add, add_points, errors, intrinsics, truth_pose};
 use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
-use crate::pose::api::{estimate, PoseParams};
+use crate::pose::api::{estimate, MaskSource, PoseParams};
 use crate::pose::geometry::Pose;
 use crate::pose::Mesh;
 
@@ -54,6 +54,13 @@ pub(crate) struct BopEvalArgs {
     /// segmentation (visib_fract >= 0.4), with the evaluated models only.
     #[arg(long)]
     pub(crate) pose: bool,
+    /// With `--pose`: the mask the refinements fit in. `detect` (the
+    /// default, as `POST /pose` without `initial_pose`): the detection's
+    /// visible mask; `oracle`: the instance's true visible mask from the
+    /// dataset (a diagnostic: how much the detection's mask costs; the
+    /// start poses still come from the detection); `none`: no mask.
+    #[arg(long, value_enum, default_value_t = PoseMask::Detect, requires = "pose")]
+    pub(crate) pose_mask: PoseMask,
     /// Also score the evaluated models with response transfer between
     /// them (`transfer=true` of `POST /detect`), as a further variant.
     #[arg(long)]
@@ -69,6 +76,14 @@ pub(crate) struct BopEvalArgs {
     /// JSON report (default out/bop-eval/report.json) and plot beside it.
     #[arg(long, default_value = "out/bop-eval")]
     pub(crate) out: PathBuf,
+}
+
+/// The mask of the pose from no start's refinements (`--pose-mask`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum PoseMask {
+    Detect,
+    Oracle,
+    None,
 }
 
 fn parse_named_dir(text: &str) -> Result<(String, PathBuf), String> {
@@ -90,8 +105,17 @@ struct PoseOutcome {
     /// `None`: no pose (the request was refused, e.g. nothing detected).
     add: Option<f64>,
     add_ok: bool,
+    /// ADD(-S) between 10% and 20% of the diameter: just past.
+    #[serde(default)]
+    near_miss: bool,
     success: bool,
     t_error: Option<f64>,
+    /// The answer's depth less the truth's (mm; positive: too far), and
+    /// its error across the viewing direction.
+    #[serde(default)]
+    depth_error: Option<f64>,
+    #[serde(default)]
+    lateral_error: Option<f64>,
     angle: Option<f64>,
     seconds: f64,
     error: Option<String>,
@@ -253,17 +277,28 @@ fn evaluate(
                 .iter()
                 .find(|m| m.labels().iter().any(|l| l == label))
                 .ok_or_else(|| Failure::input(format!("no model detects {label}")))?;
+            let (mask_source, mask) = match args.pose_mask {
+                PoseMask::Detect => (None, None),
+                PoseMask::None => (Some(MaskSource::None), None),
+                PoseMask::Oracle => (
+                    Some(MaskSource::Provided),
+                    Some(
+                        crate::data::load_mask(&bop.mask_visib_path(image, k))
+                            .map_err(Failure::input)?,
+                    ),
+                ),
+            };
             let params = PoseParams {
                 intrinsics: intrinsics(image),
                 initial_pose: None,
                 label: (model.labels().len() > 1).then(|| label.to_string()),
                 model: Some(model.meta.name.clone()),
-                mask: None,
+                mask: mask_source,
                 max_iterations: None,
                 start_uncertainty: None,
             };
             let t = Instant::now();
-            let answer = estimate(&img, mesh, &params, None, &refs);
+            let answer = estimate(&img, mesh, &params, mask, &refs);
             let seconds = t.elapsed().as_secs_f64();
             let mut out = PoseOutcome {
                 object: label.to_string(),
@@ -272,8 +307,11 @@ fn evaluate(
                 visib_fract: g.visib_fract,
                 add: None,
                 add_ok: false,
+                near_miss: false,
                 success: false,
                 t_error: None,
+                depth_error: None,
+                lateral_error: None,
                 angle: None,
                 seconds,
                 error: None,
@@ -326,9 +364,15 @@ fn evaluate(
                         let (_, te, angle) = errors(&est, &truth, &info.symmetries_discrete);
                         out.add = Some(e);
                         out.add_ok = e < 0.1 * info.diameter;
+                        out.near_miss = !out.add_ok && e < 0.2 * info.diameter;
                         out.success = te < 0.1 * info.diameter && angle < 5.0;
                         out.t_error = Some(te);
                         out.angle = Some(angle);
+                        // Along and across the truth's viewing ray.
+                        let ray = truth.translation.normalize();
+                        let d = est.translation - truth.translation;
+                        out.depth_error = Some(d.dot(&ray));
+                        out.lateral_error = Some((d - ray * d.dot(&ray)).norm());
                     }
                 }
                 Err(e) => out.error = Some(e.to_string()),
@@ -439,6 +483,39 @@ fn print_pose_stages(pose: &[PoseOutcome]) {
             share(&rs, &|p| below(p.start_t_error, 50.0)),
             share(&rs, &|p| p.add_ok),
         );
+    }
+    // The answers just past (ADD(-S) 10-20% d) and those within: their
+    // median errors along and across the viewing ray, and of rotation.
+    println!(
+        "pose errors:        {:<10} {:>9} {:>4} {:>10} {:>10} {:>10}",
+        "object", "answers", "n", "|depth| mm", "across mm", "angle deg"
+    );
+    for name in names.iter().copied().chain(std::iter::once("all")) {
+        for (what, keep) in [
+            (
+                "within",
+                (|p: &PoseOutcome| p.add_ok) as fn(&PoseOutcome) -> bool,
+            ),
+            ("just past", |p: &PoseOutcome| p.near_miss),
+        ] {
+            let rs: Vec<&PoseOutcome> = pose
+                .iter()
+                .filter(|p| (name == "all" || p.object == name) && keep(p))
+                .collect();
+            let med = |f: &dyn Fn(&PoseOutcome) -> Option<f64>| {
+                let v: Vec<f64> = rs.iter().filter_map(|p| f(p)).collect();
+                crate::eval::median(v)
+            };
+            println!(
+                "                    {:<10} {:>9} {:>4} {:>10.1} {:>10.1} {:>10.1}",
+                name,
+                what,
+                rs.len(),
+                med(&|p| p.depth_error.map(f64::abs)),
+                med(&|p| p.lateral_error),
+                med(&|p| p.angle),
+            );
+        }
     }
 }
 
