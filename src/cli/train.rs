@@ -699,7 +699,8 @@ pub(crate) fn fold_check(
     if let Some(auc) = found.auc() {
         eprintln!(
             "{cat}: held out by the folds: AUC {auc:.3} on {} photographs ({} objects)",
-            found.photos, found.objects
+            found.photos(),
+            found.objects()
         );
     }
     Ok((fitted, found))

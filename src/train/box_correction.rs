@@ -41,14 +41,9 @@ pub struct HeldOut {
     /// Each found object's offset (its best-scoring detection overlapping
     /// its box by at least [`MIN_OVERLAP`]).
     pub offsets: Vec<Offset>,
-    /// Every detection (score, whether it is the first to find an object
-    /// by box overlap 0.5: the detection figures' rule).
-    pub scored: Vec<(f64, bool)>,
-    /// Annotated objects and photographs scanned.
-    pub objects: usize,
-    pub photos: usize,
-    /// The same detections photograph by photograph (for comparisons
-    /// that resample photographs: [`HeldOut::wins_over`]).
+    /// The detections photograph by photograph (each photograph scanned
+    /// once; by photograph for comparisons that resample them:
+    /// [`HeldOut::wins_over`]).
     pub per_photo: Vec<PhotoFound>,
 }
 
@@ -58,16 +53,28 @@ pub struct PhotoFound {
     pub image: PathBuf,
     /// Its annotated objects.
     pub objects: usize,
-    /// Its detections, as in [`HeldOut::scored`].
+    /// Its detections: score, and whether it is the first to find an
+    /// object by box overlap 0.5 (the detection figures' rule).
     pub scored: Vec<(f64, bool)>,
 }
 
 impl HeldOut {
+    /// Photographs scanned.
+    pub fn photos(&self) -> usize {
+        self.per_photo.len()
+    }
+
+    /// Annotated objects on them.
+    pub fn objects(&self) -> usize {
+        self.per_photo.iter().map(|p| p.objects).sum()
+    }
+
     /// Area under recall against false positives per image up to 1 (the
     /// `bop-eval` figure) of all the held-out detections together; `None`
     /// without an object.
     pub fn auc(&self) -> Option<f64> {
-        (self.objects > 0).then(|| auc_curve(self.scored.clone(), self.objects, self.photos).0)
+        let found: Vec<&PhotoFound> = self.per_photo.iter().collect();
+        auc_of(&found)
     }
 
     /// How often these detections' AUC beats `other`'s when the
@@ -93,12 +100,7 @@ impl HeldOut {
                 .iter()
                 .map(|&i| if mine { pairs[i].0 } else { pairs[i].1 })
                 .collect();
-            let objects: usize = found.iter().map(|p| p.objects).sum();
-            let scored: Vec<(f64, bool)> = found
-                .iter()
-                .flat_map(|p| p.scored.iter().copied())
-                .collect();
-            (objects > 0).then(|| auc_curve(scored, objects, found.len()).0)
+            auc_of(&found)
         };
         // Fixed seed: the same held-out detections always decide alike.
         let mut rng = crate::vision::rng::SplitMix64::new(0x5d_4097);
@@ -120,11 +122,19 @@ impl HeldOut {
 
     fn extend(&mut self, other: HeldOut) {
         self.offsets.extend(other.offsets);
-        self.scored.extend(other.scored);
-        self.objects += other.objects;
-        self.photos += other.photos;
         self.per_photo.extend(other.per_photo);
     }
+}
+
+/// The AUC of `found`'s detections together (a photograph drawn twice
+/// counts twice); `None` without an object.
+fn auc_of(found: &[&PhotoFound]) -> Option<f64> {
+    let objects: usize = found.iter().map(|p| p.objects).sum();
+    let scored: Vec<(f64, bool)> = found
+        .iter()
+        .flat_map(|p| p.scored.iter().copied())
+        .collect();
+    (objects > 0).then(|| auc_curve(scored, objects, found.len()).0)
 }
 
 /// What `model` finds on `photos` (their objects annotated with the
@@ -165,8 +175,6 @@ pub fn held_out(
             .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", image.display())))?;
         let (mut dets, _) = det.detect(&pyr, &params)?;
         dets.sort_by(|x, y| y.score.total_cmp(&x.score));
-        out.photos += 1;
-        out.objects += boxes.len();
         let mut photo = PhotoFound {
             image: image.clone(),
             objects: boxes.len(),
@@ -187,7 +195,6 @@ pub fn held_out(
             if let Some((i, _)) = hit {
                 taken[i] = true;
             }
-            out.scored.push((d.score, hit.is_some()));
             photo.scored.push((d.score, hit.is_some()));
         }
         out.per_photo.push(photo);
@@ -337,10 +344,18 @@ mod tests {
         // object is found below one false positive per image.
         let found = HeldOut {
             offsets: Vec::new(),
-            scored: vec![(3.0, true), (2.0, false), (1.0, false), (0.5, true)],
-            objects: 2,
-            photos: 2,
-            per_photo: Vec::new(),
+            per_photo: vec![
+                PhotoFound {
+                    image: PathBuf::from("a"),
+                    objects: 1,
+                    scored: vec![(3.0, true), (1.0, false)],
+                },
+                PhotoFound {
+                    image: PathBuf::from("b"),
+                    objects: 1,
+                    scored: vec![(2.0, false), (0.5, true)],
+                },
+            ],
         };
         let auc = found.auc().unwrap();
         // Recall 0.5 over FPPI [0, 1): the second object comes at FPPI 1.
@@ -360,9 +375,6 @@ mod tests {
             };
             h.extend(HeldOut {
                 offsets: Vec::new(),
-                scored: scored.clone(),
-                objects: 1,
-                photos: 1,
                 per_photo: vec![PhotoFound {
                     image: PathBuf::from(format!("p{i}")),
                     objects: 1,
