@@ -153,6 +153,11 @@ pub(crate) struct MeshArgs {
     /// it wins).
     #[arg(long, requires = "photos")]
     pub(crate) keep_renders: bool,
+    /// With `--photos`, route `boxes`: most training passes of each
+    /// held-out fold (the box correction's and the check's, both sides
+    /// alike; the full trainings keep theirs).
+    #[arg(long, default_value_t = CHECK_FOLD_PASSES, requires = "photos")]
+    pub(crate) fold_passes: usize,
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
 }
@@ -462,6 +467,9 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
         return Err(Failure::input(
             "--from-views trains one object per model: run it once per --mesh",
         ));
+    }
+    if args.fold_passes == 0 {
+        return Err(Failure::input("--fold-passes must be at least 1"));
     }
     if args.photos.is_some() && args.mesh.len() > 1 {
         return Err(Failure::input(
@@ -790,6 +798,7 @@ pub(crate) fn run_mesh(args: &MeshArgs) -> Result<(), Failure> {
                     "skipped": p.skipped,
                     "route": args.photo_route,
                     "latent_rounds": args.latent_rounds,
+                    "fold_passes": args.fold_passes,
                     "visibility": args.photo_visibility,
                     "share": args.photo_share,
                 })),
@@ -962,6 +971,9 @@ impl PhotoSamples {
     }
 }
 
+/// Most training passes of a held-out fold with `--photos` (`--fold-passes`).
+const CHECK_FOLD_PASSES: usize = 8;
+
 /// Paired bootstrap draws of the held-out photographs that compare the
 /// models with and without the renders.
 const CHECK_RESAMPLES: usize = 2000;
@@ -1008,6 +1020,7 @@ fn train_with_photo_boxes(
         mirror_photos: false,
         box_folds: super::train::COCO_BOX_FOLDS,
         box_fold_rounds: super::train::COCO_BOX_FOLD_ROUNDS,
+        box_fold_passes: Some(args.fold_passes),
         // The renders' backgrounds are the photographs themselves: they
         // give no background examples, and the folds hold out photographs
         // alone.

@@ -257,6 +257,7 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
                 mirror_photos: args.mirror_photos,
                 box_folds: args.box_folds,
                 box_fold_rounds: args.box_fold_rounds,
+                box_fold_passes: None,
                 renders: Default::default(),
                 mining: false,
             };
@@ -473,6 +474,9 @@ pub(crate) struct BoxRoute {
     pub(crate) mirror_photos: bool,
     pub(crate) box_folds: usize,
     pub(crate) box_fold_rounds: usize,
+    /// Most passes of each box-correction fold's training (and its
+    /// mining); `None`: as many as the full training's.
+    pub(crate) box_fold_passes: Option<usize>,
     /// Images the caller drew (renders over the photographs): they give
     /// no background examples, stay in every box-correction fold's
     /// training and are never held out.
@@ -669,6 +673,12 @@ pub(crate) fn fold_check(
         boxes_imputed: true,
         ..mv.clone()
     };
+    let mut params = params.clone();
+    if let Some(most) = route.box_fold_passes {
+        params.max_passes = params.max_passes.min(most);
+        params.mining_passes = params.mining_passes.min(most);
+    }
+    let params = &params;
     let (fitted, found) =
         box_correction::fit(trained, route.box_folds, &route.renders, cache, |subset| {
             let hidden = indicatif::ProgressBar::hidden();
@@ -911,6 +921,7 @@ mod tests {
             mirror_photos: false,
             box_folds: 0,
             box_fold_rounds: 0,
+            box_fold_passes: None,
             renders: Arc::new(renders.iter().map(|s| s.image.clone()).collect()),
             mining: true,
         };
