@@ -336,7 +336,7 @@ fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
     })
     .unwrap();
     assert_eq!(trained, 2);
-    assert_eq!((found.photos, found.objects), (16, 16));
+    assert_eq!((found.photos(), found.objects()), (16, 16));
     let auc = found.auc().expect("held-out objects");
     eprintln!("held-out AUC {auc:.3}");
     assert!(auc > 0.8, "held-out AUC {auc:.3}");
