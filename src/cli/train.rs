@@ -673,12 +673,7 @@ pub(crate) fn fold_check(
         boxes_imputed: true,
         ..mv.clone()
     };
-    let mut params = params.clone();
-    if let Some(most) = route.box_fold_passes {
-        params.max_passes = params.max_passes.min(most);
-        params.mining_passes = params.mining_passes.min(most);
-    }
-    let params = &params;
+    let params = &fold_params(params, route);
     let (fitted, found) =
         box_correction::fit(trained, route.box_folds, &route.renders, cache, |subset| {
             let hidden = indicatif::ProgressBar::hidden();
@@ -714,6 +709,17 @@ pub(crate) fn fold_check(
         );
     }
     Ok((fitted, found))
+}
+
+/// The settings of each box-correction fold's training: `params` with
+/// their passes (and mining passes) at most `route.box_fold_passes`.
+fn fold_params(params: &TrainParams, route: &BoxRoute) -> TrainParams {
+    let mut p = params.clone();
+    if let Some(most) = route.box_fold_passes {
+        p.max_passes = p.max_passes.min(most);
+        p.mining_passes = p.mining_passes.min(most);
+    }
+    p
 }
 
 /// Whether `train_coco` trains `s` as a box-only photograph (latent
@@ -940,5 +946,31 @@ mod tests {
         );
         // Mining where the flags leave it open.
         assert_eq!(with.mining_budget, MINING_BUDGET);
+    }
+
+    #[test]
+    fn the_folds_train_at_most_their_passes() {
+        let route = |most: Option<usize>| BoxRoute {
+            sources: vec![Source::Single, Source::Boxes],
+            mirror_photos: false,
+            box_folds: 2,
+            box_fold_rounds: 0,
+            box_fold_passes: most,
+            renders: Default::default(),
+            mining: true,
+        };
+        let full = TrainParams {
+            max_passes: 15,
+            mining_passes: 15,
+            ..TrainParams::default()
+        };
+        let capped = fold_params(&full, &route(Some(8)));
+        assert_eq!((capped.max_passes, capped.mining_passes), (8, 8));
+        // Never more than the full training's.
+        let loose = fold_params(&full, &route(Some(30)));
+        assert_eq!((loose.max_passes, loose.mining_passes), (15, 15));
+        let same = fold_params(&full, &route(None));
+        assert_eq!((same.max_passes, same.mining_passes), (15, 15));
+        assert_eq!(same.template_scale, full.template_scale);
     }
 }
