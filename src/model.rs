@@ -5,19 +5,27 @@
 //! `view{a}.w_vis` `[rows, cols, 31]`, `view{a}.w_occ` `[rows, cols, 31]`,
 //! `view{a}.w_prior` `[rows, cols]`, `view{a}.w_hop` `[K + 1]`,
 //! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`, and from format 2 on,
-//! where the trainer learned one, `view{a}.shape` `[rows * cell_size, cols
-//! * cell_size]`: the viewpoint's pixel shape model
-//! ([`crate::vision::shape`]), and `view{a}.colours` `[4096]`: the object's
-//! colour histogram from the training images. Format 1 files (no shape
-//! models) still load.
-//! The safetensors metadata holds one key, `sdhop`, whose value is the JSON
-//! of [`ModelMeta`].
+//! where the trainer learned one, `view{a}.shape` (`rows` times
+//! `cell_size` by `cols` times `cell_size`): the viewpoint's pixel shape
+//! model ([`crate::vision::shape`]), and `view{a}.colours` `[4096]`: the
+//! object's colour histogram from the training images.
+//!
+//! The safetensors metadata holds two keys: `sdhop`, whose value is the
+//! JSON of [`ModelMeta`], and from format 3 on `sdhop.sha256`, the SHA-256
+//! of that JSON and of every tensor ([`content_digest`]). Loading
+//! recomputes it and refuses a file whose tensors or metadata changed after
+//! it was written (a flipped byte, a header edited by hand), and format 3
+//! states the feature kind always, so that no learned-cell file is read as
+//! HOG. Files of formats 1 and 2 carry no digest: they are refused, and
+//! `sdhop-train upgrade` rewrites them as format 3 after the operator has
+//! vouched for them.
 
 use std::collections::HashMap;
 use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 use crate::vision::cells::{FeatureKind, LearnedCells};
@@ -29,12 +37,17 @@ use crate::vision::segment::SegmentParams;
 use crate::vision::shape::{ShapeModel, COLOUR_BINS};
 use crate::vision::VisionError;
 
-/// Version of the weights format this build writes.
-pub const FORMAT_VERSION: u32 = 2;
-/// The oldest version this build reads.
+/// Version of the weights format this build writes and serves.
+pub const FORMAT_VERSION: u32 = 3;
+/// The oldest version [`Model::from_legacy_bytes`] (`sdhop-train upgrade`)
+/// reads.
 pub const MIN_FORMAT_VERSION: u32 = 1;
+/// The first version with a digest and an explicit feature kind.
+pub const DIGEST_FORMAT_VERSION: u32 = 3;
 /// Metadata key of the JSON description.
 pub const META_KEY: &str = "sdhop";
+/// Metadata key of the digest ([`content_digest`]).
+pub const DIGEST_KEY: &str = "sdhop.sha256";
 /// Largest template side in cells a file may declare.
 pub const MAX_TEMPLATE_CELLS: usize = 256;
 
@@ -55,6 +68,14 @@ pub enum ModelError {
     Meta(String),
     #[error("unsupported format version {found} (this build reads {MIN_FORMAT_VERSION} to {FORMAT_VERSION})")]
     Version { found: u32 },
+    #[error("format version {found} has no digest of its contents: check the file is the one trained, then rewrite it with `sdhop-train upgrade FILE`")]
+    Legacy { found: u32 },
+    #[error("the file's contents do not match its digest (written {written}, computed {computed}): its tensors or metadata changed after training; restore or retrain it")]
+    Digest { written: String, computed: String },
+    #[error("missing metadata key `{DIGEST_KEY}` (a format {FORMAT_VERSION} file always has one)")]
+    MissingDigest,
+    #[error("the metadata does not state the feature kind (`pyramid.features`), which format {FORMAT_VERSION} requires")]
+    MissingFeatureKind,
     #[error("missing tensor `{0}`")]
     MissingTensor(String),
     #[error("tensor `{name}` has dtype {dtype} and shape {shape:?}, expected F32 {expected:?}")]
@@ -200,6 +221,41 @@ impl std::fmt::Debug for LowRankCache {
             "LowRank(not built)"
         })
     }
+}
+
+/// The digest a file of format 3 carries under [`DIGEST_KEY`]: SHA-256
+/// (hex) of the metadata JSON exactly as stored and of every tensor in
+/// order of name (its name, dtype, shape and bytes, each length-prefixed),
+/// so that no byte that decides how the weights are read or what they are
+/// can change unseen.
+pub fn content_digest<'a, N, D>(
+    meta_json: &str,
+    tensors: impl Iterator<Item = (N, D, Vec<usize>, &'a [u8])>,
+) -> String
+where
+    N: AsRef<str>,
+    D: AsRef<str>,
+{
+    let mut tensors: Vec<_> = tensors.collect();
+    tensors.sort_by(|a, b| a.0.as_ref().cmp(b.0.as_ref()));
+    let mut h = Sha256::new();
+    let mut field = |bytes: &[u8]| {
+        h.update((bytes.len() as u64).to_le_bytes());
+        h.update(bytes);
+    };
+    field(b"sdhop model digest 1");
+    field(meta_json.as_bytes());
+    for (name, dtype, shape, data) in &tensors {
+        field(name.as_ref().as_bytes());
+        field(dtype.as_ref().as_bytes());
+        let dims: Vec<u8> = shape
+            .iter()
+            .flat_map(|d| (*d as u64).to_le_bytes())
+            .collect();
+        field(&dims);
+        field(data);
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn f32_bytes(v: impl Iterator<Item = f32>) -> Vec<u8> {
@@ -372,9 +428,19 @@ impl Model {
         Ok(())
     }
 
-    /// Serialises to safetensors bytes.
+    /// Serialises to safetensors bytes of the current format, with the
+    /// digest of the contents.
     pub fn to_bytes(&self) -> Result<Vec<u8>, ModelError> {
-        self.validate()?;
+        self.serialize(FORMAT_VERSION)
+    }
+
+    /// Serialises as format `version` (a digest from
+    /// [`DIGEST_FORMAT_VERSION`] on; older versions only for tests of
+    /// their refusal and upgrade).
+    fn serialize(&self, version: u32) -> Result<Vec<u8>, ModelError> {
+        let mut meta = self.meta.clone();
+        meta.format_version = version;
+        Model::checked(meta.clone(), self.views.clone(), self.shapes.clone())?;
         let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
         for (a, w) in self.views.iter().enumerate() {
             let (r, c) = (w.rows, w.cols);
@@ -418,6 +484,14 @@ impl Model {
                 }
             }
         }
+        let meta = serde_json::to_string(&meta).map_err(|e| ModelError::Meta(e.to_string()))?;
+        let mut info = HashMap::from([(META_KEY.to_string(), meta.clone())]);
+        if version >= DIGEST_FORMAT_VERSION {
+            let tensors = buffers
+                .iter()
+                .map(|(name, shape, data)| (name.as_str(), "F32", shape.clone(), data.as_slice()));
+            info.insert(DIGEST_KEY.to_string(), content_digest(&meta, tensors));
+        }
         let views: Vec<(String, TensorView<'_>)> = buffers
             .iter()
             .map(|(name, shape, data)| {
@@ -426,19 +500,28 @@ impl Model {
                     .map_err(|e| ModelError::Format(e.to_string()))
             })
             .collect::<Result<_, _>>()?;
-        let meta =
-            serde_json::to_string(&self.meta).map_err(|e| ModelError::Meta(e.to_string()))?;
-        let info = HashMap::from([(META_KEY.to_string(), meta)]);
         safetensors::serialize(views, Some(info)).map_err(|e| ModelError::Format(e.to_string()))
     }
 
-    /// Parses safetensors bytes; every inconsistency is an error.
+    /// Parses safetensors bytes of the current format; every inconsistency
+    /// is an error, and so is a digest that does not match the contents,
+    /// a missing feature kind, or an older format ([`ModelError::Legacy`]).
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, ModelError> {
+        Self::parse(bytes, false)
+    }
+
+    /// [`Self::from_bytes`] that also reads formats 1 and 2, which carry no
+    /// digest (a HOG model's metadata there names no feature kind): for
+    /// `sdhop-train upgrade`, which rewrites them as the current format.
+    pub fn from_legacy_bytes(bytes: &[u8]) -> Result<Self, ModelError> {
+        Self::parse(bytes, true)
+    }
+
+    fn parse(bytes: &[u8], legacy: bool) -> Result<Self, ModelError> {
         let (_, header) =
             SafeTensors::read_metadata(bytes).map_err(|e| ModelError::Format(e.to_string()))?;
-        let meta_json = header
-            .metadata()
-            .as_ref()
+        let info = header.metadata().as_ref();
+        let meta_json = info
             .and_then(|m| m.get(META_KEY))
             .ok_or(ModelError::MissingMeta)?;
         let meta: ModelMeta =
@@ -449,6 +532,33 @@ impl Model {
             });
         }
         let st = SafeTensors::deserialize(bytes).map_err(|e| ModelError::Format(e.to_string()))?;
+        if meta.format_version >= DIGEST_FORMAT_VERSION {
+            let written = info
+                .and_then(|m| m.get(DIGEST_KEY))
+                .ok_or(ModelError::MissingDigest)?;
+            let computed = content_digest(
+                meta_json,
+                st.tensors().into_iter().map(|(name, t)| {
+                    let dtype = format!("{:?}", t.dtype());
+                    (name, dtype, t.shape().to_vec(), t.data())
+                }),
+            );
+            if *written != computed {
+                return Err(ModelError::Digest {
+                    written: written.clone(),
+                    computed,
+                });
+            }
+            let raw: serde_json::Value =
+                serde_json::from_str(meta_json).map_err(|e| ModelError::Meta(e.to_string()))?;
+            if raw["pyramid"].get("features").is_none() {
+                return Err(ModelError::MissingFeatureKind);
+            }
+        } else if !legacy {
+            return Err(ModelError::Legacy {
+                found: meta.format_version,
+            });
+        }
         let read = |name: &str, expected: Vec<usize>| -> Result<Vec<f32>, ModelError> {
             let t = st
                 .tensor(name)
@@ -720,12 +830,26 @@ mod tests {
         let back = Model::from_bytes(&with.to_bytes().unwrap()).unwrap();
         assert_eq!(back.shapes, vec![Some(shape.clone())]);
         assert_eq!(back.meta.format_version, FORMAT_VERSION);
-        // A format 1 file (written before shape models): loads, no shapes.
-        let mut old = m.clone();
-        old.meta.format_version = 1;
-        let back = Model::from_bytes(&old.to_bytes().unwrap()).unwrap();
+        // A format 1 file (written before shape models): refused by the
+        // server's reader, read by the upgrade's, no shapes.
+        let old = m.serialize(1).unwrap();
+        assert!(matches!(
+            Model::from_bytes(&old),
+            Err(ModelError::Legacy { found: 1 })
+        ));
+        let back = Model::from_legacy_bytes(&old).unwrap();
         assert_eq!(back.shapes, vec![None]);
         assert_eq!(back.meta.format_version, 1);
+        // Format 2 with its shapes: the same, and upgraded it loads.
+        let two = with.serialize(2).unwrap();
+        assert!(matches!(
+            Model::from_bytes(&two),
+            Err(ModelError::Legacy { found: 2 })
+        ));
+        let upgraded = Model::from_legacy_bytes(&two).unwrap().to_bytes().unwrap();
+        let back = Model::from_bytes(&upgraded).unwrap();
+        assert_eq!(back.shapes, vec![Some(shape.clone())]);
+        assert_eq!(back.meta.format_version, FORMAT_VERSION);
         // A shape of the wrong size or with probabilities out of range.
         let wrong = ShapeModel {
             width: 5,
@@ -815,20 +939,29 @@ mod tests {
             .position(|w| w == needle)
             .unwrap();
         bytes[at + needle.len() - 1] = b'5';
-        let text = bytes;
+        // The digest sees it first; with the digest made to match, the
+        // tensors' shapes still refuse it.
         assert!(matches!(
-            Model::from_bytes(&text),
+            Model::from_bytes(&bytes),
+            Err(ModelError::Digest { .. })
+        ));
+        let forged = edit_meta(&meta_only.to_bytes().unwrap(), true, |m| {
+            m["viewpoints"][0]["cols"] = 5.into();
+        });
+        assert!(matches!(
+            Model::from_bytes(&forged),
             Err(ModelError::Shape { .. })
         ));
     }
 
     #[test]
     fn a_model_of_each_feature_kind_round_trips_and_cells_must_match() {
-        // HOG: the metadata names no feature kind (files as before).
+        // HOG: the metadata states the kind (format 3), names no cells.
         let hog = sample();
         let bytes = hog.to_bytes().unwrap();
         let meta = serde_json::to_value(&hog.meta).unwrap();
-        assert!(meta["pyramid"].get("features").is_none() && meta.get("cells").is_none());
+        assert_eq!(meta["pyramid"]["features"], "hog");
+        assert!(meta.get("cells").is_none());
         assert_eq!(Model::from_bytes(&bytes).unwrap(), hog);
         // Learned cells: the kind and the projection's fingerprint travel.
         let mut cnn = sample();
@@ -851,5 +984,118 @@ mod tests {
         let mut hog_named = hog;
         hog_named.meta.cells = Some("0123456789abcdef".into());
         assert!(matches!(hog_named.validate(), Err(ModelError::Invalid(_))));
+    }
+
+    /// The file's header JSON and where its metadata string lies in it.
+    fn header_of(bytes: &[u8]) -> (usize, serde_json::Value) {
+        let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+        (n, serde_json::from_slice(&bytes[8..8 + n]).unwrap())
+    }
+
+    /// `bytes` with its header replaced by `header` (padded as safetensors
+    /// pads it), the tensors' bytes unchanged.
+    fn with_header(bytes: &[u8], header: &serde_json::Value) -> Vec<u8> {
+        let (n, _) = header_of(bytes);
+        let mut text = serde_json::to_vec(header).unwrap();
+        while text.len() % 8 != 0 {
+            text.push(b' ');
+        }
+        let mut out = (text.len() as u64).to_le_bytes().to_vec();
+        out.extend_from_slice(&text);
+        out.extend_from_slice(&bytes[8 + n..]);
+        out
+    }
+
+    /// `bytes` with its metadata JSON edited by `edit` (the digest kept, or
+    /// recomputed as a careful forger would).
+    fn edit_meta(bytes: &[u8], recompute: bool, edit: impl Fn(&mut serde_json::Value)) -> Vec<u8> {
+        let (_, mut header) = header_of(bytes);
+        let mut meta: serde_json::Value =
+            serde_json::from_str(header["__metadata__"][META_KEY].as_str().unwrap()).unwrap();
+        edit(&mut meta);
+        let meta = serde_json::to_string(&meta).unwrap();
+        if recompute {
+            let st = SafeTensors::deserialize(bytes).unwrap();
+            let digest = content_digest(
+                &meta,
+                st.tensors().into_iter().map(|(name, t)| {
+                    (
+                        name,
+                        format!("{:?}", t.dtype()),
+                        t.shape().to_vec(),
+                        t.data(),
+                    )
+                }),
+            );
+            header["__metadata__"][DIGEST_KEY] = digest.into();
+        }
+        header["__metadata__"][META_KEY] = meta.into();
+        with_header(bytes, &header)
+    }
+
+    #[test]
+    fn files_that_were_changed_after_training_are_refused() {
+        let mut cnn = sample();
+        cnn.meta.pyramid.features = FeatureKind::Cnn;
+        cnn.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+        let cnn_bytes = cnn.to_bytes().unwrap();
+        let hog_bytes = sample().to_bytes().unwrap();
+        // The helpers themselves change nothing that loads when they edit
+        // nothing (the JSON's key order may change; the digest follows).
+        let same = edit_meta(&cnn_bytes, true, |_| {});
+        assert_eq!(Model::from_bytes(&same).unwrap(), cnn);
+        // A learned-cell model whose header no longer names its kind.
+        let unkind = edit_meta(&cnn_bytes, false, |m| {
+            m["pyramid"].as_object_mut().unwrap().remove("features");
+            m.as_object_mut().unwrap().remove("cells");
+        });
+        assert!(matches!(
+            Model::from_bytes(&unkind),
+            Err(ModelError::Digest { .. })
+        ));
+        // The same with the digest recomputed: the kind is required.
+        let forged = edit_meta(&cnn_bytes, true, |m| {
+            m["pyramid"].as_object_mut().unwrap().remove("features");
+            m.as_object_mut().unwrap().remove("cells");
+        });
+        assert!(matches!(
+            Model::from_bytes(&forged),
+            Err(ModelError::MissingFeatureKind)
+        ));
+        // A HOG model whose header claims learned cells.
+        let claims = edit_meta(&hog_bytes, false, |m| {
+            m["pyramid"]["features"] = "cnn".into();
+            m["cells"] = FeatureKind::Cnn.fingerprint().unwrap().into();
+        });
+        assert!(matches!(
+            Model::from_bytes(&claims),
+            Err(ModelError::Digest { .. })
+        ));
+        // One flipped byte inside a weight tensor (the last byte of the
+        // file is a tensor's).
+        let mut flipped = cnn_bytes.clone();
+        let last = flipped.len() - 1;
+        flipped[last] ^= 0x01;
+        let err = Model::from_bytes(&flipped).unwrap_err();
+        assert!(matches!(err, ModelError::Digest { .. }), "{err}");
+        assert!(err.to_string().contains("retrain"), "{err}");
+        assert!(!err.to_string().contains('\n'), "one line: {err}");
+        // The digest removed: refused.
+        let (_, mut header) = header_of(&cnn_bytes);
+        header["__metadata__"]
+            .as_object_mut()
+            .unwrap()
+            .remove(DIGEST_KEY);
+        assert!(matches!(
+            Model::from_bytes(&with_header(&cnn_bytes, &header)),
+            Err(ModelError::MissingDigest)
+        ));
+        // A careful forger's format 2 file (no digest): only the upgrade
+        // reads it.
+        let downgraded = edit_meta(&cnn_bytes, false, |m| m["format_version"] = 2.into());
+        assert!(matches!(
+            Model::from_bytes(&downgraded),
+            Err(ModelError::Legacy { found: 2 })
+        ));
     }
 }

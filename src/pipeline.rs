@@ -388,6 +388,13 @@ fn scan_model<'a>(
     } else if let Some(maps) = maps {
         detector = detector.with_maps(maps);
     }
+    // A colour-weighted model's colour term only ever lowers a score
+    // ([`colour_term`]), so the search by the SD-HOP score at the
+    // threshold finds every detection whose answered score reaches it;
+    // `max_detections` keeps the best by the SD-HOP score, and those whose
+    // colour term takes them below the threshold are dropped
+    // ([`detection_json`]). An answer at a lower threshold, cut at this
+    // one, is then this answer.
     let (dets, s) = match transfer.as_deref() {
         Some(t) => detector
             .with_transfer(t)
@@ -431,6 +438,17 @@ fn scan_model<'a>(
     })
 }
 
+/// What a model's colour weight adds to a detection's score: the weight
+/// times the colour agreement where the colours disagree (a negative
+/// agreement), nothing where they agree. A score is never raised above
+/// its SD-HOP score, so that the search's pruning by the threshold on the
+/// SD-HOP score is exact for the score answered, and an answer at a
+/// threshold holds exactly the detections a lower threshold finds at or
+/// above it.
+pub fn colour_term(weight: f64, agreement: f64) -> f64 {
+    weight * agreement.min(0.0)
+}
+
 /// A detection's answer with its masks (and its colour agreement where the
 /// model weighs it); `None` for another label than the one asked.
 fn detection_json(
@@ -453,7 +471,15 @@ fn detection_json(
     let masks = match (&s.image_colours, object_colours) {
         (Some(ic), Some(oc)) => {
             let (raw, refined) = detection_masks(d, pyr, &params.refine, shape);
-            score += params.colour_weight * colour_agreement(&pyr.image, &refined, oc, ic);
+            score += colour_term(
+                params.colour_weight,
+                colour_agreement(&pyr.image, &refined, oc, ic),
+            );
+            // Answers true to their threshold: the score with its colour
+            // term is the one the threshold bounds.
+            if score < params.threshold {
+                return Ok(None);
+            }
             Some((raw, refined))
         }
         _ => None,

@@ -84,6 +84,19 @@ struct Args {
     /// detections keep the cores while both compute.
     #[arg(long, env = "SDHOP_POSE_THREADS", default_value_t = 0)]
     pose_threads: usize,
+    /// Memory, in MiB, that the requests being decoded, waiting and
+    /// computed may take together: each reserves its estimated cost (from
+    /// the image's declared size and the models' pyramids) before its image
+    /// is decoded and waits its turn when the budget is taken. 0: the
+    /// container's memory limit less 1024 MiB, or 1536 MiB without one
+    /// (safe under the manifest's 2560 MiB limit).
+    #[arg(long, env = "SDHOP_MEMORY_BUDGET_MB", default_value_t = 0)]
+    memory_budget_mb: u64,
+    /// Pixels a batch of detections holds at most: a larger image is
+    /// computed in a batch of its own, so that small images batched with
+    /// it do not wait for it.
+    #[arg(long, env = "SDHOP_MAX_BATCH_PIXELS", default_value_t = sdhop::infer::DEFAULT_MAX_BATCH_PIXELS)]
+    max_batch_pixels: usize,
     /// Largest image, in pixels (checked from the header, before decoding).
     #[arg(long, env = "SDHOP_MAX_PIXELS", default_value_t = 16_000_000)]
     max_pixels: usize,
@@ -276,6 +289,12 @@ fn run(args: Args) -> Result<(), String> {
         } else {
             std::thread::available_parallelism().map_or(1, |n| n.get())
         },
+        memory_budget_bytes: if args.memory_budget_mb > 0 {
+            args.memory_budget_mb.saturating_mul(1 << 20)
+        } else {
+            sdhop::infer::budget::default_budget_bytes()
+        },
+        max_batch_pixels: args.max_batch_pixels.max(1),
     };
     let metrics = InferMetrics::new(&registry).map_err(|e| e.to_string())?;
     let infer = Infer::start(backend, infer_config, metrics).map_err(|e| e.to_string())?;

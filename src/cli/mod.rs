@@ -19,6 +19,7 @@ mod pose_bench;
 mod pose_data;
 mod pose_eval;
 mod train;
+mod upgrade;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -60,6 +61,7 @@ use pose_bench::*;
 use pose_data::*;
 use pose_eval::*;
 use train::*;
+use upgrade::*;
 
 #[derive(Parser)]
 #[command(
@@ -123,6 +125,9 @@ pub(crate) enum Command {
     /// the backbone's features of representative photographs (written to
     /// models/backbones/, built into the binary at the next build).
     Cells(CellsArgs),
+    /// Rewrite weights files of formats 1 and 2 (no digest) as the current
+    /// format, which the server requires.
+    Upgrade(UpgradeArgs),
 }
 
 /// The feature kinds of `models` (`hog`, `cnn` or both, comma-separated),
@@ -216,6 +221,7 @@ pub fn main() -> ExitCode {
         Command::Cv(a) => run_cv(a),
         Command::Eval(a) => run_eval(a),
         Command::Annotate(a) => run_annotate(a),
+        Command::Upgrade(a) => run_upgrade(a),
         Command::Join(a) => run_join(a),
         Command::Detect(a) => run_detect(a),
         Command::Pose(a) => run_pose(a),

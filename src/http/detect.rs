@@ -18,7 +18,7 @@ use axum::Json;
 use serde::Serialize;
 
 use super::error::ApiError;
-use super::image::{decode, IMAGE_TYPES};
+use super::image::{decode, image_size, IMAGE_TYPES};
 use super::state::AppState;
 use crate::infer::DetectTask;
 use crate::model::Model;
@@ -485,6 +485,11 @@ pub async fn detect(
     let bytes = image_bytes(req, cfg.max_body_bytes).await?;
     let models = select_models(&state, &query.models)?;
     let limits = cfg.image;
+    // The memory its decoding and computation take, reserved from the
+    // header's size before anything is decoded (waits for its turn).
+    let (w, h) = image_size(&bytes, &limits)?;
+    let refs: Vec<&Model> = models.iter().map(|m| m.as_ref()).collect();
+    let cost = state.infer.reserve(w, h, &refs, deadline).await?;
     let image = tokio::task::spawn_blocking(move || decode(&bytes, &limits))
         .await
         .map_err(|e| ApiError::Internal(format!("decoder task: {e}")))??;
@@ -493,7 +498,9 @@ pub async fn detect(
         models,
         opts: DetectOptions {
             threshold: query.threshold,
-            max_detections: query.max_detections,
+            // Without a cap asked for, every detection at or above the
+            // threshold, up to the server's limit.
+            max_detections: Some(query.max_detections.unwrap_or(cfg.max_detections)),
             // A label map is drawn from the masks asked for (refined or raw).
             masks: query.masks,
             prune: true,
@@ -503,6 +510,7 @@ pub async fn detect(
             transfer: query.transfer,
             label: None,
         },
+        cost: Some(cost),
     };
     let resp = state.infer.detect(permit, task, deadline).await?;
     let rle = query.rle.unwrap_or(RleFormat::Uncompressed);

@@ -35,6 +35,9 @@ pub enum ApiError {
     Unprocessable(String),
     #[error("the {0} lane of the inference queue is full, retry later")]
     Overloaded(&'static str),
+    /// The memory budget is taken (see `infer::budget`).
+    #[error("{0}")]
+    MemoryBusy(String),
     #[error("the service is not ready: {0}")]
     NotReady(String),
     #[error("the request's deadline passed before it was answered")]
@@ -77,9 +80,10 @@ impl ApiError {
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             ApiError::NotAcceptable(_) => StatusCode::NOT_ACCEPTABLE,
             ApiError::Unprocessable(_) => StatusCode::UNPROCESSABLE_ENTITY,
-            ApiError::Overloaded(_) | ApiError::NotReady(_) | ApiError::DeadlineExceeded => {
-                StatusCode::SERVICE_UNAVAILABLE
-            }
+            ApiError::Overloaded(_)
+            | ApiError::MemoryBusy(_)
+            | ApiError::NotReady(_)
+            | ApiError::DeadlineExceeded => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::RequestTimeout(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
@@ -96,6 +100,7 @@ impl ApiError {
             ApiError::NotAcceptable(_) => "not_acceptable",
             ApiError::Unprocessable(_) => "unprocessable",
             ApiError::Overloaded(_) => "overloaded",
+            ApiError::MemoryBusy(_) => "memory_busy",
             ApiError::NotReady(_) => "not_ready",
             ApiError::DeadlineExceeded => "deadline_exceeded",
             ApiError::RequestTimeout(_) => "request_timeout",
@@ -131,6 +136,8 @@ impl From<InferError> for ApiError {
             InferError::Overloaded(lane) => ApiError::Overloaded(lane.name()),
             InferError::ShuttingDown => ApiError::NotReady("shutting down".into()),
             InferError::DeadlineExceeded => ApiError::DeadlineExceeded,
+            e @ InferError::TooCostly { .. } => ApiError::PayloadTooLarge(e.to_string()),
+            e @ InferError::MemoryBusy { .. } => ApiError::MemoryBusy(e.to_string()),
             InferError::Vision(v) => v.into(),
             InferError::Backend(b) => ApiError::NotReady(b.to_string()),
             InferError::Pose(p) => p.into(),

@@ -89,6 +89,7 @@ pub async fn warm_up(state: &AppState) -> Result<(), InferError> {
             masks: MaskMode::Refined,
             ..DetectOptions::default()
         },
+        cost: None,
     };
     let permit = state.infer.admit()?;
     state

@@ -178,6 +178,15 @@ pub async fn pose(
         }
         _ => None,
     };
+    // The memory of its image and its detection, reserved before either
+    // is decoded (the mesh is bounded by its own limits).
+    let detector: Vec<&crate::model::Model> = model.iter().map(|m| m.as_ref()).collect();
+    let cost = Some(
+        state
+            .infer
+            .reserve(size.0, size.1, &detector, deadline)
+            .await?,
+    );
     let mesh_limits = cfg.mesh;
     // On the pose pool, at its priority: what the client sent costs what
     // its bytes allow, and that is pose work.
@@ -198,6 +207,7 @@ pub async fn pose(
                 params,
                 mask,
                 model,
+                cost,
             };
             Ok::<_, ApiError>((task, dropped))
         })

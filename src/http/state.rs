@@ -251,3 +251,37 @@ impl AppState {
         self.models.iter().find(|m| m.model.meta.name == name)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{hand_model, HandModelParams, SynthObject};
+
+    #[test]
+    fn a_model_file_changed_after_training_is_refused_naming_the_file() {
+        let obj = SynthObject {
+            cols: 6,
+            rows: 5,
+            seed: 2,
+        };
+        let model = hand_model(&obj, "widget", true, &HandModelParams::default()).unwrap();
+        let dir = std::env::temp_dir().join(format!("sdhop-load-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("widget.safetensors");
+        model.save(&path).unwrap();
+        assert_eq!(load_models(&dir).unwrap().len(), 1);
+        // One flipped byte in the last tensor's data.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let last = bytes.len() - 3;
+        bytes[last] ^= 0x40;
+        std::fs::write(&path, &bytes).unwrap();
+        let err = match load_models(&dir) {
+            Ok(_) => panic!("a changed file was loaded"),
+            Err(e) => e.to_string(),
+        };
+        std::fs::remove_dir_all(&dir).ok();
+        assert!(err.contains("widget.safetensors"), "{err}");
+        assert!(err.contains("digest"), "{err}");
+        assert_eq!(err.lines().count(), 1, "{err}");
+    }
+}

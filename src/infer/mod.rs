@@ -23,6 +23,7 @@
 //! request whose caller went away (its reply channel closed) is dropped
 //! unseen.
 
+pub mod budget;
 pub mod memory;
 mod metrics;
 mod queue;
@@ -45,6 +46,7 @@ use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::VisionError;
 
+pub use budget::{MemoryBudget, Reservation};
 pub use metrics::InferMetrics;
 
 /// Settings of the queue.
@@ -65,6 +67,15 @@ pub struct InferConfig {
     /// refinement alone uses them all). They run at a lower priority than
     /// the detections ([`POSE_NICENESS`]).
     pub pose_threads: usize,
+    /// The memory that the requests being decoded, waiting or computed
+    /// may take together, in bytes ([`budget`]): each reserves its
+    /// estimated cost before its image is decoded.
+    pub memory_budget_bytes: u64,
+    /// Pixels a batch of detections holds at most (the first request of a
+    /// batch is taken whatever its size): a large image is computed alone,
+    /// so that it cannot make the small ones batched with it miss their
+    /// deadlines.
+    pub max_batch_pixels: usize,
 }
 
 impl Default for InferConfig {
@@ -75,9 +86,18 @@ impl Default for InferConfig {
             max_batch_delay: Duration::from_millis(2),
             pose_queue_size: 8,
             pose_threads: 1,
+            memory_budget_bytes: budget::default_budget_bytes(),
+            max_batch_pixels: DEFAULT_MAX_BATCH_PIXELS,
         }
     }
 }
+
+/// How long past its batch's last deadline the worker may still compute
+/// before readiness says the service is stuck ([`Infer::overrunning`]).
+pub const OVERRUN_GRACE: Duration = Duration::from_secs(2);
+
+/// The default [`InferConfig::max_batch_pixels`]: four VGA photographs.
+pub const DEFAULT_MAX_BATCH_PIXELS: usize = 4 * 640 * 480;
 
 impl InferConfig {
     /// The places of `lane`.
@@ -116,6 +136,12 @@ pub enum InferError {
     ShuttingDown,
     #[error("the request's deadline passed before it was computed")]
     DeadlineExceeded,
+    /// The request alone needs more memory than the server's budget.
+    #[error("this image with these models needs about {needed_mib} MiB to compute, more than the server's memory budget of {budget_mib} MiB (--memory-budget-mb): send a smaller image or fewer models")]
+    TooCostly { needed_mib: u64, budget_mib: u64 },
+    /// The budget stayed taken by requests in progress until the deadline.
+    #[error("the server's memory budget of {budget_mib} MiB stayed taken by requests in progress until this request's deadline (it needs about {needed_mib} MiB): retry later")]
+    MemoryBusy { needed_mib: u64, budget_mib: u64 },
     /// The input was refused by the vision layer.
     #[error(transparent)]
     Vision(#[from] VisionError),
@@ -138,11 +164,14 @@ impl From<BackendError> for InferError {
     }
 }
 
-/// A detection to compute: a decoded image, the models to run and options.
+/// A detection to compute: a decoded image, the models to run and options,
+/// and the memory reserved for it (given back when the worker drops the
+/// task).
 pub struct DetectTask {
     pub image: Arc<ColorImage>,
     pub models: Vec<Arc<Model>>,
     pub opts: DetectOptions,
+    pub cost: Option<Reservation>,
 }
 
 /// A pose to refine: a decoded image, a parsed mesh, the checked
@@ -154,6 +183,8 @@ pub struct PoseTask {
     pub params: PoseParams,
     pub mask: Option<Mask>,
     pub model: Option<Arc<Model>>,
+    /// The memory reserved for its detection, if it needs one.
+    pub cost: Option<Reservation>,
 }
 
 /// What the worker computes and where the answer goes.
@@ -259,6 +290,7 @@ struct Shared {
     /// The last deadline of the batch the worker computes (microseconds
     /// since `epoch`, plus one), 0 while it computes none.
     busy_until: AtomicU64,
+    budget: MemoryBudget,
 }
 
 /// Marks the worker busy with a batch until dropped (see
@@ -316,10 +348,13 @@ impl Infer {
             || config.max_batch == 0
             || config.pose_queue_size == 0
             || config.pose_threads == 0
+            || config.max_batch_pixels == 0
+            || config.memory_budget_bytes < budget::MIN_BUDGET_BYTES
         {
-            return Err(InferError::Internal(
-                "queue sizes, batch size and pose threads must be at least 1".into(),
-            ));
+            return Err(InferError::Internal(format!(
+                "queue sizes, batch size, batch pixels and pose threads must be at least 1, the memory budget at least {} MiB",
+                budget::MIN_BUDGET_BYTES >> 20
+            )));
         }
         let pose_pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.pose_threads)
@@ -350,6 +385,7 @@ impl Infer {
             metrics,
             epoch: Instant::now(),
             busy_until: AtomicU64::new(0),
+            budget: MemoryBudget::new(config.memory_budget_bytes),
         });
         shared.metrics.backend_healthy.set(1);
         let worker_shared = Arc::clone(&shared);
@@ -380,14 +416,17 @@ impl Infer {
         self.shared.backend_healthy.load(Ordering::Acquire)
     }
 
-    /// The worker is still computing a batch whose every deadline has
-    /// passed: it should have given up, so the service is not ready
-    /// (readiness answers 503 until it has).
+    /// The worker is still computing a batch whose every deadline passed
+    /// more than [`OVERRUN_GRACE`] ago: every stage of the computation
+    /// looks at the deadline at a grain of milliseconds, so a worker that
+    /// far behind is stuck, and the service is not ready until it lets go.
+    /// A worker still finishing a request that just missed its deadline is
+    /// no reason to leave the Service.
     pub fn overrunning(&self) -> bool {
         let until = self.shared.busy_until.load(Ordering::Acquire);
         until != 0 && {
             let now = self.shared.epoch.elapsed().as_micros() as u64;
-            now.saturating_add(1) > until
+            now.saturating_add(1) > until.saturating_add(OVERRUN_GRACE.as_micros() as u64)
         }
     }
 
@@ -405,6 +444,26 @@ impl Infer {
     /// New requests are admitted.
     pub fn accepting(&self) -> bool {
         self.shared.accepting.load(Ordering::Acquire)
+    }
+
+    /// The memory budget (see [`budget`]).
+    pub fn budget(&self) -> &MemoryBudget {
+        &self.shared.budget
+    }
+
+    /// Reserves the estimated memory of detecting with `models` on a
+    /// `width x height` image, waiting for it in order of arrival at most
+    /// until `deadline`; call it once the image's header is read and
+    /// before it is decoded.
+    pub async fn reserve(
+        &self,
+        width: usize,
+        height: usize,
+        models: &[&Model],
+        deadline: Instant,
+    ) -> Result<Reservation, InferError> {
+        let bytes = budget::request_bytes(width, height, models, rayon::current_num_threads());
+        self.shared.budget.reserve(bytes, deadline).await
     }
 
     /// Admission to the detect lane (see [`Self::admit_to`]).
@@ -629,6 +688,69 @@ mod tests {
     use super::*;
     use crate::backend::CpuBackend;
 
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_large_image_is_batched_alone_and_each_request_holds_its_memory() {
+        use crate::synth::{hand_model, HandModelParams, SynthObject};
+        let obj = SynthObject {
+            cols: 6,
+            rows: 5,
+            seed: 3,
+        };
+        let model = Arc::new(hand_model(&obj, "obj", true, &HandModelParams::default()).unwrap());
+        let registry = prometheus::Registry::new();
+        let infer = Infer::start(
+            Box::new(CpuBackend),
+            InferConfig {
+                max_batch: 4,
+                // Long enough that the three small requests always meet in
+                // one batch, however loaded the machine.
+                max_batch_delay: Duration::from_secs(2),
+                max_batch_pixels: 3 * 64 * 48,
+                ..InferConfig::default()
+            },
+            InferMetrics::new(&registry).unwrap(),
+        )
+        .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let image = |w: usize, h: usize| Arc::new(crate::vision::image::noise_image(w, h, 1));
+        let refs = [model.as_ref()];
+        let mut waiting = Vec::new();
+        // One large image, then three small ones: the large one is computed
+        // alone, the small ones together.
+        for (w, h) in [(320, 240), (64, 48), (64, 48), (64, 48)] {
+            let cost = infer.reserve(w, h, &refs, deadline).await.unwrap();
+            let task = DetectTask {
+                image: image(w, h),
+                models: vec![Arc::clone(&model)],
+                opts: DetectOptions::default(),
+                cost: Some(cost),
+            };
+            let permit = infer.admit().unwrap();
+            let infer = infer.clone();
+            waiting.push(tokio::spawn(async move {
+                infer.detect(permit, task, deadline).await
+            }));
+        }
+        assert!(infer.budget().free_mib() < infer.budget().total_mib());
+        for w in waiting {
+            w.await.unwrap().unwrap();
+        }
+        let batches = &infer.shared.metrics.batch_size;
+        assert_eq!(batches.get_sample_sum(), 4.0);
+        assert_eq!(
+            batches.get_sample_count(),
+            2,
+            "the large image alone, the rest together"
+        );
+        // Every reservation is back once the worker dropped its request
+        // (just after answering it).
+        let until = Instant::now() + Duration::from_secs(5);
+        while infer.budget().free_mib() < infer.budget().total_mib() && Instant::now() < until {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert_eq!(infer.budget().free_mib(), infer.budget().total_mib());
+    }
+
     #[test]
     fn the_watchdog_sees_a_batch_past_its_deadline() {
         let registry = prometheus::Registry::new();
@@ -646,7 +768,16 @@ mod tests {
         }
         {
             let _busy = shared.busy(Some(Instant::now() - Duration::from_millis(1)));
-            assert!(infer.overrunning(), "past its deadline");
+            assert!(!infer.overrunning(), "just past its deadline: finishing");
+        }
+        // (Instants are kept from the queue's start: wait until a deadline
+        // past the grace lies after it.)
+        std::thread::sleep(OVERRUN_GRACE + Duration::from_millis(20));
+        {
+            let _busy = shared.busy(Some(
+                Instant::now() - OVERRUN_GRACE - Duration::from_millis(1),
+            ));
+            assert!(infer.overrunning(), "past its deadline and the grace");
         }
         assert!(!infer.overrunning(), "idle again");
     }

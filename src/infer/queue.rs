@@ -50,10 +50,20 @@ fn next_batch(shared: &Shared, pose_turn: &mut bool) -> Option<Vec<Job>> {
     }
     *pose_turn = true;
     let mut batch: Vec<Job> = lanes.detect.pop_front().into_iter().collect();
+    let mut pixels: usize = batch.iter().map(|j| j.work.pixels()).sum();
     let until = Instant::now() + shared.config.max_batch_delay;
     while batch.len() < shared.config.max_batch {
-        if let Some(job) = lanes.detect.pop_front() {
-            batch.push(job);
+        if let Some(next) = lanes.detect.front() {
+            // A batch is answered together: an image that would take it
+            // past its pixels waits for the next one, in its turn.
+            let more = pixels.saturating_add(next.work.pixels());
+            if more > shared.config.max_batch_pixels {
+                break;
+            }
+            if let Some(job) = lanes.detect.pop_front() {
+                pixels = more;
+                batch.push(job);
+            }
             continue;
         }
         let now = Instant::now();
@@ -110,11 +120,13 @@ pub(super) fn refine_later(
         }
         let deadline = Deadline::at(deadline);
         let result = catch_unwind(AssertUnwindSafe(|| {
+            // The reservation is held until the refinement ends.
             let PoseTask {
                 image,
                 mesh,
                 params,
                 mask,
+                cost: _cost,
                 ..
             } = *task;
             let found = found.transpose()?;
@@ -152,6 +164,15 @@ impl Drop for ReleaseOnDrop<'_> {
 }
 
 impl Work {
+    /// The pixels of the request's image.
+    fn pixels(&self) -> usize {
+        let image = match self {
+            Work::Detect(t, _) => &t.image,
+            Work::Pose(t, _) => &t.image,
+        };
+        image.width().saturating_mul(image.height())
+    }
+
     /// The image, models and options of the detection this request needs,
     /// if any (a pose request with `mask: "detect"` needs one).
     /// Its computation gives up at `deadline`.

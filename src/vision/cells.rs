@@ -25,9 +25,9 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use super::cnn::{f32_tensor, Backbone, FeatureMap};
-use super::hog::{hog, HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use super::hog::{hog_until, HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
 use super::image::ColorImage;
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// The backbone file, as `scripts/convert_efficientnet_lite0.py` wrote it.
 pub const BACKBONE_FILE: &[u8] =
@@ -79,9 +79,17 @@ impl FeatureKind {
 
     /// The cells of `img`: `floor(w / 8) x floor(h / 8)` of them.
     pub fn cells(&self, img: &ColorImage) -> Result<HogMap, VisionError> {
+        self.cells_until(img, Deadline::NONE)
+    }
+
+    /// [`Self::cells`] that gives up with
+    /// [`VisionError::DeadlineExceeded`] once `deadline` has passed (HOG
+    /// every few dozen pixel rows, the backbone before every band of
+    /// every layer).
+    pub fn cells_until(&self, img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
         match self {
-            FeatureKind::Hog => Ok(hog(img)),
-            FeatureKind::Cnn => LearnedCells::builtin()?.cells(img),
+            FeatureKind::Hog => hog_until(img, deadline),
+            FeatureKind::Cnn => LearnedCells::builtin()?.cells_until(img, deadline),
         }
     }
 }
@@ -390,11 +398,17 @@ impl LearnedCells {
     /// The cells of `img`: `floor(w / 8) x floor(h / 8)` of them, like
     /// HOG's.
     pub fn cells(&self, img: &ColorImage) -> Result<HogMap, VisionError> {
+        self.cells_until(img, Deadline::NONE)
+    }
+
+    /// [`Self::cells`] that gives up once `deadline` has passed (see
+    /// [`crate::vision::cnn::Backbone::forward_until`]).
+    pub fn cells_until(&self, img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
         let (w, h) = (img.width() / CELL_SIZE, img.height() / CELL_SIZE);
         if w == 0 || h == 0 {
             return HogMap::from_raw(w, h, Vec::new());
         }
-        let map = self.backbone.forward(img);
+        let map = self.backbone.forward_until(img, deadline)?;
         self.projection.project(&map, w, h)
     }
 }

@@ -23,6 +23,7 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::image::ColorImage;
+use super::{Deadline, VisionError};
 
 /// Why a backbone file cannot be used.
 #[derive(Debug, Error, Clone, PartialEq)]
@@ -351,7 +352,12 @@ impl Block {
     /// The block over the whole map, [`BAND_ROWS`] output rows at a time:
     /// the expansion of just the input rows a band reads, its depthwise
     /// convolution and its projection.
-    fn apply(&self, x: &FeatureMap, scratch: &mut Scratch) -> FeatureMap {
+    fn apply(
+        &self,
+        x: &FeatureMap,
+        scratch: &mut Scratch,
+        deadline: Deadline,
+    ) -> Result<FeatureMap, VisionError> {
         let dw = &self.depthwise;
         let (k, s) = (dw.k, dw.stride);
         let (ow, _) = same_padding(x.width, k, s);
@@ -360,6 +366,9 @@ impl Block {
         let mut out = FeatureMap::zeros(self.project.out, ow, oh);
         let mid = dw.channels;
         for oy0 in (0..oh).step_by(BAND_ROWS) {
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
             let oy1 = (oy0 + BAND_ROWS).min(oh);
             // The input rows the band reads.
             let y0 = (oy0 * s).saturating_sub(top);
@@ -432,7 +441,7 @@ impl Block {
                 }
             }
         }
-        out
+        Ok(out)
     }
 }
 
@@ -608,7 +617,12 @@ impl Backbone {
     /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
     /// 27 rows, [`BAND_ROWS`] output rows at a time) times the stem's
     /// weights, then ReLU6.
-    fn stem(&self, img: &ColorImage, scratch: &mut Scratch) -> FeatureMap {
+    fn stem(
+        &self,
+        img: &ColorImage,
+        scratch: &mut Scratch,
+        deadline: Deadline,
+    ) -> Result<FeatureMap, VisionError> {
         let (w, h) = (img.width(), img.height());
         let (ow, left) = same_padding(w, 3, 2);
         let (oh, top) = same_padding(h, 3, 2);
@@ -617,6 +631,9 @@ impl Backbone {
         let mut out = FeatureMap::zeros(out_c, ow, oh);
         let pixels = img.data();
         for oy0 in (0..oh).step_by(BAND_ROWS) {
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
             let oy1 = (oy0 + BAND_ROWS).min(oh);
             let n = (oy1 - oy0) * ow;
             let patches = &mut scratch.expanded;
@@ -666,7 +683,7 @@ impl Backbone {
                 }
             }
         }
-        out
+        Ok(out)
     }
 
     /// The stem's weights (`out x 3 x 3 x 3`), biases, and the input
@@ -686,12 +703,26 @@ impl Backbone {
     /// runs band by band ([`BAND_ROWS`]), so that no expanded map is held
     /// whole.
     pub fn forward(&self, img: &ColorImage) -> FeatureMap {
+        // Without a deadline nothing gives up.
+        self.forward_until(img, Deadline::NONE)
+            .unwrap_or_else(|_| FeatureMap::zeros(self.channels, 0, 0))
+    }
+
+    /// [`Self::forward`] that gives up once `deadline` has passed, looked
+    /// at before every band of every layer: a band of [`BAND_ROWS`] output
+    /// rows is at most a few milliseconds of work even on a 16-megapixel
+    /// image, so a request whose deadline passed frees its thread at once.
+    pub fn forward_until(
+        &self,
+        img: &ColorImage,
+        deadline: Deadline,
+    ) -> Result<FeatureMap, VisionError> {
         let mut scratch = Scratch::default();
-        let mut x = self.stem(img, &mut scratch);
+        let mut x = self.stem(img, &mut scratch, deadline)?;
         for b in &self.blocks {
-            x = b.apply(&x, &mut scratch);
+            x = b.apply(&x, &mut scratch, deadline)?;
         }
-        x
+        Ok(x)
     }
 
     /// The same features, each layer over the whole map at once (the
@@ -811,6 +842,39 @@ mod tests {
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
         // float32 against the script's float64, through 16 layers.
         assert!(worst <= 1e-4 * scale, "worst {worst} of {scale}");
+    }
+
+    #[test]
+    fn the_forward_gives_up_at_its_deadline_and_is_unchanged_without_one() {
+        let net = Backbone::from_bytes(&shipped()).unwrap();
+        let img = crate::vision::image::noise_image(131, 77, 9);
+        let plain = net.forward(&img);
+        let far = Deadline::at(std::time::Instant::now() + std::time::Duration::from_secs(3600));
+        assert_eq!(net.forward_until(&img, far).unwrap().data, plain.data);
+        assert_eq!(
+            net.forward_until(&img, Deadline::NONE).unwrap().data,
+            plain.data
+        );
+        let passed = Deadline::at(std::time::Instant::now());
+        assert_eq!(
+            net.forward_until(&img, passed).unwrap_err(),
+            VisionError::DeadlineExceeded
+        );
+        // Cells, and a learned-cell pyramid, give up the same way.
+        let cells = crate::vision::cells::LearnedCells::builtin().unwrap();
+        assert_eq!(
+            cells.cells_until(&img, passed).unwrap_err(),
+            VisionError::DeadlineExceeded
+        );
+        let params = crate::vision::pyramid::PyramidParams {
+            features: crate::vision::cells::FeatureKind::Cnn,
+            ..Default::default()
+        };
+        let seg = crate::vision::segment::SegmentParams::default();
+        assert!(matches!(
+            crate::vision::pyramid::FeaturePyramid::build_until(&img, &params, &seg, passed),
+            Err(VisionError::DeadlineExceeded)
+        ));
     }
 
     #[test]

@@ -11,7 +11,7 @@
 //! cells outside the map have all-zero features.
 
 use super::image::{ColorImage, CHANNELS};
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// Dimension of a cell's feature vector.
 pub const HOG_DIM: usize = 31;
@@ -173,37 +173,48 @@ fn cell_coord(p: usize) -> f32 {
 /// instruction set of the processor ([`crate::vision::simd`]; every path
 /// gives the same features bit for bit).
 pub fn hog(img: &ColorImage) -> HogMap {
+    // Without a deadline nothing gives up.
+    hog_until(img, Deadline::NONE).unwrap_or_else(|_| HogMap::zeros(0, 0))
+}
+
+/// [`hog`] that gives up with [`VisionError::DeadlineExceeded`] once
+/// `deadline` has passed, looked at every [`DEADLINE_ROWS`] pixel rows (a
+/// few milliseconds of work on the widest image).
+pub fn hog_until(img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
     #[cfg(target_arch = "x86_64")]
     match crate::vision::simd::level() {
         // SAFETY: the features were detected at run time.
-        crate::vision::simd::Simd::Avx512 => return unsafe { hog_avx512(img) },
+        crate::vision::simd::Simd::Avx512 => return unsafe { hog_avx512(img, deadline) },
         // SAFETY: the features were detected at run time.
-        crate::vision::simd::Simd::Avx2 => return unsafe { hog_avx2(img) },
+        crate::vision::simd::Simd::Avx2 => return unsafe { hog_avx2(img, deadline) },
         crate::vision::simd::Simd::Portable => {}
     }
-    hog_body(img)
+    hog_body(img, deadline)
 }
+
+/// Pixel rows of HOG between two looks at the deadline.
+pub const DEADLINE_ROWS: usize = 64;
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
-unsafe fn hog_avx512(img: &ColorImage) -> HogMap {
-    hog_body(img)
+unsafe fn hog_avx512(img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
+    hog_body(img, deadline)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn hog_avx2(img: &ColorImage) -> HogMap {
-    hog_body(img)
+unsafe fn hog_avx2(img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
+    hog_body(img, deadline)
 }
 
 #[inline(always)]
-fn hog_body(img: &ColorImage) -> HogMap {
+fn hog_body(img: &ColorImage, deadline: Deadline) -> Result<HogMap, VisionError> {
     let w = img.width();
     let h = img.height();
     let cw = w / CELL_SIZE;
     let ch = h / CELL_SIZE;
     if cw == 0 || ch == 0 {
-        return HogMap::zeros(cw, ch);
+        return Ok(HogMap::zeros(cw, ch));
     }
     // Histograms with a border of one cell on every side, so that votes need
     // no bounds checks; the border is dropped before normalisation.
@@ -230,6 +241,9 @@ fn hog_body(img: &ColorImage) -> HogMap {
     let mut dxc = vec![0.0f32; w];
     let mut dyc = vec![0.0f32; w];
     for y in 0..h {
+        if y % DEADLINE_ROWS == 0 && deadline.passed() {
+            return Err(VisionError::DeadlineExceeded);
+        }
         let yu = y.saturating_sub(1);
         let yd = (y + 1).min(h - 1);
         gm.iter_mut().for_each(|v| *v = -1.0);
@@ -314,7 +328,7 @@ fn hog_body(img: &ColorImage) -> HogMap {
             .copy_from_slice(&hist[src..src + cw * SENSITIVE_BINS]);
     }
     let hist = inner;
-    normalise(&hist, cw, ch)
+    Ok(normalise(&hist, cw, ch))
 }
 
 /// Block normalisation, truncation and projection to 31 features.
@@ -489,18 +503,26 @@ mod tests {
     fn hog_paths_are_bit_identical() {
         for (w, h, seed) in [(67, 45, 3), (129, 97, 4), (640, 480, 5)] {
             let img = noise_image(w, h, seed);
-            let portable = hog_body(&img);
+            let portable = hog_body(&img, Deadline::NONE).unwrap();
             assert_eq!(hog(&img), portable, "{w}x{h}");
             #[cfg(target_arch = "x86_64")]
             {
                 use crate::vision::simd::{level, Simd};
                 if matches!(level(), Simd::Avx2 | Simd::Avx512) {
                     // SAFETY: the features were detected at run time.
-                    assert_eq!(unsafe { hog_avx2(&img) }, portable, "AVX2 {w}x{h}");
+                    assert_eq!(
+                        unsafe { hog_avx2(&img, Deadline::NONE) }.unwrap(),
+                        portable,
+                        "AVX2 {w}x{h}"
+                    );
                 }
                 if level() == Simd::Avx512 {
                     // SAFETY: as above.
-                    assert_eq!(unsafe { hog_avx512(&img) }, portable, "AVX-512 {w}x{h}");
+                    assert_eq!(
+                        unsafe { hog_avx512(&img, Deadline::NONE) }.unwrap(),
+                        portable,
+                        "AVX-512 {w}x{h}"
+                    );
                 }
             }
         }

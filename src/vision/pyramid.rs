@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::cells::FeatureKind;
 use super::hog::{HogMap, CELL_SIZE};
 use super::image::ColorImage;
-use super::segment::{segment, SegmentParams, Segmentation};
+use super::segment::{segment_until, SegmentParams, Segmentation};
 use super::{Deadline, VisionError};
 
 /// Pyramid settings: levels at `max_scale * 2^(-l / levels_per_octave)` down
@@ -19,9 +19,10 @@ pub struct PyramidParams {
     pub levels_per_octave: u32,
     pub max_scale: f32,
     pub min_scale: f32,
-    /// What a cell's vector is (absent from the files of HOG models, which
-    /// all models were before learned cells).
-    #[serde(default, skip_serializing_if = "FeatureKind::is_hog")]
+    /// What a cell's vector is. Always written; absent from the files of
+    /// formats 1 and 2 for HOG models (which all models were before
+    /// learned cells), where it reads as HOG.
+    #[serde(default)]
     pub features: FeatureKind,
 }
 
@@ -165,7 +166,7 @@ impl FeaturePyramid {
         let (segmentation, hogs) = rayon::join(
             || {
                 let t = Instant::now();
-                segment(img, seg).map(|s| (s, ms(t)))
+                segment_until(img, seg, deadline).map(|s| (s, ms(t)))
             },
             || {
                 let t = Instant::now();
@@ -181,16 +182,19 @@ impl FeaturePyramid {
         let levels = hogs
             .into_par_iter()
             .map(|(lw, lh, hog)| {
+                if deadline.passed() {
+                    return Err(VisionError::DeadlineExceeded);
+                }
                 let cell_segments =
                     segmentation.cell_labels(lw, lh, hog.width(), hog.height(), CELL_SIZE);
-                Level {
+                Ok(Level {
                     scale_x: lw as f64 / w as f64,
                     scale_y: lh as f64 / h as f64,
                     hog,
                     cell_segments,
-                }
+                })
             })
-            .collect();
+            .collect::<Result<_, _>>()?;
         Ok(Self {
             image_width: w,
             image_height: h,
@@ -241,7 +245,7 @@ pub fn feature_levels(
             }
             // The full-size level reads the image itself.
             if (lw, lh) == (w, h) {
-                return Ok((lw, lh, params.features.cells(img)?));
+                return Ok((lw, lh, params.features.cells_until(img, deadline)?));
             }
             // HOG levels as ever; learned cells see upsampled levels
             // interpolated, not in blocks.
@@ -249,7 +253,10 @@ pub fn feature_levels(
                 FeatureKind::Hog => img.resize_area(lw, lh)?,
                 FeatureKind::Cnn => img.resize_smooth(lw, lh)?,
             };
-            Ok((lw, lh, params.features.cells(&resized)?))
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
+            Ok((lw, lh, params.features.cells_until(&resized, deadline)?))
         })
         .collect()
 }
@@ -275,6 +282,38 @@ mod tests {
         for l in &pyr.levels {
             assert_eq!(l.cell_segments.len(), l.hog.width() * l.hog.height());
         }
+    }
+
+    #[test]
+    fn every_stage_gives_up_at_the_deadline() {
+        let img = crate::vision::image::noise_image(300, 200, 4);
+        let passed = Deadline::at(Instant::now());
+        let far = Deadline::at(Instant::now() + std::time::Duration::from_secs(3600));
+        let p = PyramidParams::default();
+        let seg = SegmentParams::default();
+        assert!(matches!(
+            FeaturePyramid::build_until(&img, &p, &seg, passed),
+            Err(VisionError::DeadlineExceeded)
+        ));
+        assert!(matches!(
+            crate::vision::hog::hog_until(&img, passed),
+            Err(VisionError::DeadlineExceeded)
+        ));
+        assert!(matches!(
+            segment_until(&img, &seg, passed),
+            Err(VisionError::DeadlineExceeded)
+        ));
+        // A deadline far off changes nothing.
+        assert_eq!(
+            crate::vision::hog::hog_until(&img, far).unwrap(),
+            crate::vision::hog::hog(&img)
+        );
+        assert_eq!(
+            segment_until(&img, &seg, far).unwrap().labels(),
+            crate::vision::segment::segment(&img, &seg)
+                .unwrap()
+                .labels()
+        );
     }
 
     #[test]

@@ -11,7 +11,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::image::{ColorImage, CHANNELS};
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// Parameters of the over-segmentation.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -319,10 +319,32 @@ fn radix_sort_by_key(items: &mut Vec<u64>) {
 
 /// Segments an image.
 pub fn segment(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation, VisionError> {
+    segment_until(img, params, Deadline::NONE)
+}
+
+/// Edges (or pixel rows, times four) between two looks at the deadline:
+/// about a millisecond of work.
+const DEADLINE_EDGES: usize = 1 << 18;
+
+/// [`segment`] that gives up with [`VisionError::DeadlineExceeded`] once
+/// `deadline` has passed (looked at between the steps and every
+/// [`DEADLINE_EDGES`] edges within them).
+pub fn segment_until(
+    img: &ColorImage,
+    params: &SegmentParams,
+    deadline: Deadline,
+) -> Result<Segmentation, VisionError> {
     params.validate()?;
     let f = params.downsample;
+    let check = || {
+        if deadline.passed() {
+            Err(VisionError::DeadlineExceeded)
+        } else {
+            Ok(())
+        }
+    };
     if f == 1 {
-        return segment_full(img, params);
+        return segment_full(img, params, &check);
     }
     let (w, h) = (img.width(), img.height());
     let (sw, sh) = (w.div_ceil(f), h.div_ceil(f));
@@ -333,7 +355,8 @@ pub fn segment(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation,
         downsample: 1,
         ..*params
     };
-    let s = segment_full(&small, &p)?;
+    let s = segment_full(&small, &p, &check)?;
+    check()?;
     let raw: Vec<u32> = (0..h)
         .flat_map(|y| (0..w).map(move |x| (x, y)))
         .map(|(x, y)| s.label((x / f).min(sw - 1), (y / f).min(sh - 1)))
@@ -341,8 +364,14 @@ pub fn segment(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation,
     compact(w, h, raw)
 }
 
-fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation, VisionError> {
+fn segment_full(
+    img: &ColorImage,
+    params: &SegmentParams,
+    check: &dyn Fn() -> Result<(), VisionError>,
+) -> Result<Segmentation, VisionError> {
+    check()?;
     let smooth = gaussian_blur(img, params.sigma);
+    check()?;
     let (w, h) = (smooth.width(), smooth.height());
     let n = w * h;
     if n > (u32::MAX / 4) as usize {
@@ -354,7 +383,11 @@ fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation
     let d = smooth.data();
     // Edge id = pixel * 4 + direction; key = bits of the non-negative weight.
     let mut edges: Vec<u64> = Vec::with_capacity(n * 4);
+    let rows_per_check = (DEADLINE_EDGES / (4 * w)).max(1);
     for y in 0..h {
+        if y % rows_per_check == 0 {
+            check()?;
+        }
         for x in 0..w {
             let p = y * w + x;
             for (k, &(dx, dy)) in DIRS.iter().enumerate() {
@@ -373,7 +406,9 @@ fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation
             }
         }
     }
+    check()?;
     radix_sort_by_key(&mut edges);
+    check()?;
     // Neighbour offsets per direction: no division when decoding an edge.
     let offsets: [isize; 4] = DIRS.map(|(dx, dy)| dy * w as isize + dx);
     let endpoints = |e: u64| -> (u32, u32, f32) {
@@ -384,7 +419,10 @@ fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation
     };
     let mut sets = DisjointSets::new(n);
     let mut thresh = vec![params.k; n];
-    for &e in &edges {
+    for (i, &e) in edges.iter().enumerate() {
+        if i % DEADLINE_EDGES == 0 {
+            check()?;
+        }
         let (p, q, wgt) = endpoints(e);
         let a = sets.find(p);
         let b = sets.find(q);
@@ -394,7 +432,10 @@ fn segment_full(img: &ColorImage, params: &SegmentParams) -> Result<Segmentation
         }
     }
     if params.min_size > 1 {
-        for &e in &edges {
+        for (i, &e) in edges.iter().enumerate() {
+            if i % DEADLINE_EDGES == 0 {
+                check()?;
+            }
             let (p, q, _) = endpoints(e);
             let a = sets.find(p);
             let b = sets.find(q);
