@@ -38,3 +38,21 @@ def request(url, body=None, ctype=None, timeout=120):
     except OSError as e:
         status, msg = "error", str(e)
     return status, time.monotonic() - t, msg
+
+
+def rss_kb(pid):
+    """A process's resident memory in KiB, from /proc."""
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1])
+    return 0
+
+
+def ready(base):
+    """Whether the server at `base` answers its readiness probe 200."""
+    try:
+        with urllib.request.urlopen(base + "/health/ready", timeout=2) as r:
+            return r.status == 200
+    except (urllib.error.HTTPError, OSError):
+        return False

@@ -29,6 +29,8 @@ from collections import Counter
 
 from PIL import Image
 
+from httpclient import rss_kb
+
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 MANIFEST_ENV = {
     "SDHOP_QUEUE_SIZE": "16",
@@ -38,14 +40,6 @@ MANIFEST_ENV = {
     "SDHOP_TIMEOUT_MS": "30000",
     "SDHOP_MAX_TIMEOUT_MS": "60000",
 }
-
-
-def rss_kb(pid):
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS"):
-                return int(line.split()[1])
-    return 0
 
 
 def post(url, body, ctype):

@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
 """Peak resident memory of one /detect request above idle, by image size
 and model: what the admission's cost estimate (src/infer/budget.rs,
-`request_bytes`) is calibrated against. Starts sdhop-serve with a budget
-too large to bind (`--memory-budget-mb 1000000`) and each case's models
-alone, sends one request at a time (a CMU_KO8 photograph scaled to the
-size), samples /proc every 10 ms, and prints the peak above the idle
-process beside the estimate the server would reserve (from /info's
-`memory_budget_mb` cannot be read: the estimate is printed by
-`sdhop-train cost`, not here; this prints measured bytes per pixel).
+`request_bytes`, whose comment records these figures beside its
+estimates) is calibrated against. Starts sdhop-serve with a budget too
+large to bind (`--memory-budget-mb 1000000`) and each case's models alone,
+sends one request at a time (a CMU_KO8 photograph scaled to the size),
+samples /proc every 10 ms, and prints the peak above the idle process in
+MiB and bytes per pixel. The idle process keeps the allocator's freed
+pages after its first large request: a later size's peak counts from
+there.
 
 usage: benches/request_memory.py [--models DIR_OR_FILE ...] [--sides 2000,4000]
 """
@@ -26,24 +27,10 @@ import urllib.request
 
 from PIL import Image
 
+from httpclient import ready, rss_kb
+
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 SERVER = os.path.join(ROOT, "target/release/sdhop-serve")
-
-
-def rss_kb(pid):
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS"):
-                return int(line.split()[1])
-    return 0
-
-
-def ready(base):
-    try:
-        with urllib.request.urlopen(base + "/health/ready", timeout=2) as r:
-            return r.status == 200
-    except (urllib.error.HTTPError, OSError):
-        return False
 
 
 def measure(files, sides, photo, port):

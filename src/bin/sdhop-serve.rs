@@ -260,12 +260,12 @@ fn main() -> ExitCode {
 }
 
 fn run(args: Args) -> Result<(), String> {
-    if args.compute_threads > 0 {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(args.compute_threads)
-            .build_global()
-            .map_err(|e| e.to_string())?;
-    }
+    // The compute pool, its threads named (in `top -H` and /proc).
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(args.compute_threads)
+        .thread_name(|i| format!("sdhop-compute-{i}"))
+        .build_global()
+        .map_err(|e| e.to_string())?;
     let drain = Duration::try_from_secs_f64(args.drain_seconds).map_err(|_| {
         format!(
             "--drain-seconds {}: give a number of seconds, 0 or more",

@@ -19,7 +19,7 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use super::InferError;
 use crate::model::Model;
 use crate::pipeline::feature_settings;
-use crate::vision::cells::FeatureKind;
+use crate::vision::cells::{FeatureKind, STRIP_PIXELS};
 use crate::vision::pyramid::PyramidParams;
 
 /// The budget's unit: costs are reserved in whole mebibytes.
@@ -49,20 +49,40 @@ pub const IMAGE_BYTES_PER_PIXEL: u64 = 12;
 pub const SEGMENT_BYTES_PER_PIXEL: u64 = 96;
 
 /// Bytes per pixel of one level being computed, per compute thread, by
-/// feature kind: HOG's planes, gradients and histograms; the backbone's
-/// stem output (32 channels at stride 2) and the next block's input and
-/// output at once, plus the resized level itself.
-pub const fn level_bytes_per_pixel(kind: FeatureKind) -> u64 {
-    match kind {
-        FeatureKind::Hog => 40,
-        FeatureKind::Cnn => 64,
+/// feature kind: HOG's planes, gradients and histograms, and the resized
+/// level itself where it is not the image (`resized`); the backbone's
+/// strip of the level (its rows resized, the stem's 32 channels at stride
+/// 2, the next blocks' maps). Learned cells are computed in strips of at
+/// most [`STRIP_PIXELS`] (and their margins), so their in-flight memory
+/// stops growing there.
+pub const fn level_bytes_per_pixel(kind: FeatureKind, resized: bool) -> u64 {
+    match (kind, resized) {
+        (FeatureKind::Hog, false) => 12,
+        (FeatureKind::Hog, true) => 24,
+        (FeatureKind::Cnn, _) => 64,
     }
 }
 
 /// Bytes per pixel of the levels a pyramid keeps (per unit of level
-/// area): the cells (32 floats per 64 pixels), their segments, and the
-/// per-model response maps and bounds of the scan.
-pub const KEPT_BYTES_PER_PIXEL: u64 = 4;
+/// area), with `models` models scanning it: the cells (32 floats per 64
+/// pixels) and their segments; for learned cells also each model's stage-1
+/// planes and bounds (HOG models share a low-rank bound whose planes are
+/// small).
+pub const fn kept_bytes_per_pixel(kind: FeatureKind, models: u64) -> u64 {
+    match kind {
+        FeatureKind::Hog => 2,
+        FeatureKind::Cnn => 2 + 2 * models,
+    }
+}
+
+// Measured against these (benches/request_memory.py, one request at a
+// time, peak resident memory above the idle process, 2 compute threads), a
+// 4000x4000 photograph: the shipped cup model (HOG, 11 levels from 1 to
+// 0.5) 1176 MiB, estimated 1283; the eight shipped models about 1186 MiB,
+// estimated 1283; an LM-O learned-cell model (pyramid 0.80 to 2.11, 8
+// levels, levels in strips) 1684 MiB, estimated 2373; those eight and two
+// such learned-cell models 3592 MiB, estimated 3974. A 2000x2000 one with
+// the learned-cell model 776 MiB, estimated 1073.
 
 /// The memory budget of a server: `budget` if given, else one derived
 /// from the container's memory limit (cgroup v2 or v1) minus
@@ -97,14 +117,22 @@ pub fn request_bytes(width: usize, height: usize, models: &[&Model], threads: us
     let pyramids: u64 = feature_settings(models)
         .iter()
         .map(|(p, s)| {
+            let scanning = models
+                .iter()
+                .filter(|m| (m.meta.pyramid, m.meta.segmentation) == (*p, *s))
+                .count() as u64;
             let ds = s.downsample.max(1) as u64;
             let seg = px.saturating_mul(SEGMENT_BYTES_PER_PIXEL) / (ds * ds);
             let (largest, total) = level_areas(p);
-            let in_flight = (px as f64
-                * largest
-                * level_bytes_per_pixel(p.features) as f64
-                * threads.max(1) as f64) as u64;
-            let kept = (px as f64 * total * KEPT_BYTES_PER_PIXEL as f64) as u64;
+            let mut level = px as f64 * largest;
+            if p.features == FeatureKind::Cnn {
+                // A strip and its margins (a quarter more, at most).
+                level = level.min(STRIP_PIXELS as f64 * 1.25);
+            }
+            let per_pixel = level_bytes_per_pixel(p.features, largest > 1.0 + 1e-9);
+            let in_flight = (level * per_pixel as f64 * threads.max(1) as f64) as u64;
+            let kept =
+                (px as f64 * total * kept_bytes_per_pixel(p.features, scanning) as f64) as u64;
             px.saturating_mul(IMAGE_BYTES_PER_PIXEL)
                 .saturating_add(seg)
                 .saturating_add(in_flight)

@@ -413,6 +413,64 @@ impl LearnedCells {
     }
 }
 
+/// Level pixels above which learned cells are computed strip by strip
+/// ([`LearnedCells::level_cells_until`]): the backbone's maps of a whole
+/// 16 MP level upsampled twice took 5 GB.
+pub const STRIP_PIXELS: usize = 4 << 20;
+
+impl LearnedCells {
+    /// The cells of `img` resized to `lw x lh` (as
+    /// [`ColorImage::resize_smooth`] resizes it), the same as
+    /// [`Self::cells_until`] of the resized image, computed in strips of
+    /// cell rows: each strip's rows of the level are resized alone, with a
+    /// margin of the backbone's receptive field above and below, at offsets
+    /// and heights that keep every layer's "same" padding where the whole
+    /// level has it. Memory is then bounded by a strip, not the level.
+    pub fn level_cells_until(
+        &self,
+        img: &ColorImage,
+        (lw, lh): (usize, usize),
+        strip_pixels: usize,
+        deadline: Deadline,
+    ) -> Result<HogMap, VisionError> {
+        let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
+        if cw == 0 || ch == 0 {
+            return HogMap::from_raw(cw, ch, Vec::new());
+        }
+        let stride = self.backbone.stride;
+        // The margin: half the receptive field and one cell more, in whole
+        // cells, so that strips start on the cell grid.
+        let margin = (self.backbone.receptive_field() / 2 + stride).div_ceil(stride) * stride;
+        let rows = (strip_pixels / lw)
+            .saturating_sub(2 * margin)
+            .max(4 * stride)
+            / stride;
+        let rest = lh % stride;
+        let mut data = Vec::with_capacity(cw * ch * HOG_STRIDE);
+        for c0 in (0..ch).step_by(rows) {
+            let c1 = (c0 + rows).min(ch);
+            let y0 = (c0 * stride).saturating_sub(margin);
+            // Heights congruent to the level's modulo the stride: every
+            // stride-2 layer then pads the strip's top as the level's.
+            let need = c1 * stride + margin - y0;
+            let height = need.saturating_sub(rest).div_ceil(stride) * stride + rest;
+            let y1 = (y0 + height).min(lh);
+            let strip = if (lw, lh) == (img.width(), img.height()) {
+                img.rows(y0, y1)?
+            } else {
+                img.resize_smooth_rows(lw, lh, y0, y1)?
+            };
+            let map = self.backbone.forward_until(&strip, deadline)?;
+            let cells = self.projection.project(&map, cw, (y1 - y0) / stride)?;
+            let first = c0 - y0 / stride;
+            data.extend_from_slice(
+                &cells.raw()[first * cw * HOG_STRIDE..(first + c1 - c0) * cw * HOG_STRIDE],
+            );
+        }
+        HogMap::from_raw(cw, ch, data)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -439,6 +497,50 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn strips_of_a_level_give_the_whole_levels_cells() {
+        let cells = LearnedCells::builtin().unwrap();
+        // Heights and widths off the cell grid, up- and downscaled levels,
+        // the image's own size, strips of a few cell rows (a small strip
+        // budget) down to one strip.
+        for (w, h, lw, lh, strip) in [
+            (150, 131, 150, 131, 60_000),
+            (150, 131, 317, 285, 60_000),
+            (203, 170, 173, 149, 40_000),
+            (96, 77, 211, 203, 1 << 30),
+        ] {
+            let img = noise_image(w, h, 7);
+            let level = img.resize_smooth(lw, lh).unwrap();
+            let whole = cells.cells(&level).unwrap();
+            let strips = cells
+                .level_cells_until(&img, (lw, lh), strip, Deadline::NONE)
+                .unwrap();
+            assert_eq!(
+                (strips.width(), strips.height()),
+                (whole.width(), whole.height())
+            );
+            let worst = strips
+                .raw()
+                .iter()
+                .zip(whole.raw())
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(worst <= 1e-4, "{w}x{h} -> {lw}x{lh}: worst {worst}");
+        }
+        // Rows of a resize are the resize's rows.
+        let img = noise_image(90, 70, 3);
+        let whole = img.resize_smooth(130, 151).unwrap();
+        let part = img.resize_smooth_rows(130, 151, 37, 99).unwrap();
+        let row = 130 * 3;
+        assert_eq!(part.data(), &whole.data()[37 * row..99 * row]);
+        let passed = Deadline::at(std::time::Instant::now());
+        assert_eq!(
+            cells
+                .level_cells_until(&img, (130, 151), 20_000, passed)
+                .unwrap_err(),
+            VisionError::DeadlineExceeded
+        );
     }
 
     #[test]

@@ -698,6 +698,18 @@ impl Backbone {
         &self.blocks
     }
 
+    /// The input pixels an output cell reads along an axis at most (the
+    /// stem's 3x3 at stride 2, then each block's depthwise kernel at its
+    /// input's stride).
+    pub fn receptive_field(&self) -> usize {
+        let (mut field, mut jump) = (3usize, 2usize);
+        for b in &self.blocks {
+            field += (b.depthwise.k - 1) * jump;
+            jump *= b.depthwise.stride;
+        }
+        field
+    }
+
     /// The features of `img` (RGB, 0-255): `channels` planes of
     /// `ceil(width / stride) x ceil(height / stride)` cells. Each block
     /// runs band by band ([`BAND_ROWS`]), so that no expanded map is held

@@ -1,7 +1,7 @@
 //! A small planar-free RGB float image type used by the vision layer, and
 //! area-averaging resampling for the scale pyramid.
 
-use super::VisionError;
+use super::{Deadline, VisionError};
 
 /// Number of colour channels of [`ColorImage`].
 pub const CHANNELS: usize = 3;
@@ -98,7 +98,29 @@ impl ColorImage {
     /// exact mean of the input area it covers (an anti-aliased downscale, and a
     /// bilinear-like box upscale). Resizing to the same size is the identity.
     pub fn resize_area(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
-        self.resize_with(new_w, new_h, area_weights)
+        self.resize_with(new_w, new_h, area_weights, Deadline::NONE)
+    }
+
+    /// [`Self::resize_area`] that gives up with
+    /// [`VisionError::DeadlineExceeded`] once `deadline` has passed (looked
+    /// at every [`DEADLINE_ROWS`] rows of each pass).
+    pub fn resize_area_until(
+        &self,
+        new_w: usize,
+        new_h: usize,
+        deadline: Deadline,
+    ) -> Result<Self, VisionError> {
+        self.resize_with(new_w, new_h, area_weights, deadline)
+    }
+
+    /// [`Self::resize_smooth`] that gives up once `deadline` has passed.
+    pub fn resize_smooth_until(
+        &self,
+        new_w: usize,
+        new_h: usize,
+        deadline: Deadline,
+    ) -> Result<Self, VisionError> {
+        self.resize_with(new_w, new_h, smooth_weights, deadline)
     }
 
     /// Resizes by area averaging along an axis that shrinks and by linear
@@ -106,7 +128,82 @@ impl ColorImage {
     /// network trained on photographs resampled smoothly should see, where
     /// [`Self::resize_area`]'s box upscale makes every pixel a block.
     pub fn resize_smooth(&self, new_w: usize, new_h: usize) -> Result<Self, VisionError> {
-        self.resize_with(new_w, new_h, smooth_weights)
+        self.resize_with(new_w, new_h, smooth_weights, Deadline::NONE)
+    }
+
+    /// Rows `y0..y1` of the image.
+    pub fn rows(&self, y0: usize, y1: usize) -> Result<Self, VisionError> {
+        if y0 >= y1 || y1 > self.height {
+            return Err(VisionError::EmptyImage {
+                width: self.width,
+                height: y1.saturating_sub(y0),
+            });
+        }
+        let row = self.width * CHANNELS;
+        Ok(Self {
+            width: self.width,
+            height: y1 - y0,
+            data: self.data[y0 * row..y1 * row].to_vec(),
+        })
+    }
+
+    /// Rows `y0..y1` of [`Self::resize_smooth`]'s `new_w x new_h` image,
+    /// computed from the input rows they read alone (the very same values):
+    /// a large level is made strip by strip, never whole.
+    pub fn resize_smooth_rows(
+        &self,
+        new_w: usize,
+        new_h: usize,
+        y0: usize,
+        y1: usize,
+    ) -> Result<Self, VisionError> {
+        if new_w == 0 || new_h == 0 || y0 >= y1 || y1 > new_h {
+            return Err(VisionError::EmptyImage {
+                width: new_w,
+                height: y1.saturating_sub(y0),
+            });
+        }
+        let wy = smooth_weights(self.height, new_h);
+        let rows = &wy[y0..y1];
+        let lo = rows.iter().flatten().map(|&(i, _)| i).min().unwrap_or(0);
+        let hi = rows.iter().flatten().map(|&(i, _)| i).max().unwrap_or(0);
+        let row_in = self.width * CHANNELS;
+        let src = &self.data[lo * row_in..(hi + 1) * row_in];
+        let row = new_w * CHANNELS;
+        let mut tmp = vec![0.0f32; (hi + 1 - lo) * row];
+        if new_w == self.width {
+            tmp.copy_from_slice(src);
+        } else {
+            let wx = FlatTaps::new(&smooth_weights(self.width, new_w));
+            match wx.width {
+                1 => wx.horizontal::<1>(src, self.width, &mut tmp),
+                2 => wx.horizontal::<2>(src, self.width, &mut tmp),
+                3 => wx.horizontal::<3>(src, self.width, &mut tmp),
+                4 => wx.horizontal::<4>(src, self.width, &mut tmp),
+                _ => wx.horizontal_any(src, self.width, &mut tmp),
+            }
+        }
+        let mut out = vec![0.0f32; (y1 - y0) * row];
+        for (dst, taps) in out.chunks_exact_mut(row).zip(rows) {
+            if new_h == self.height {
+                // No vertical resampling: the row itself (as `resize_with`
+                // copies an image of the same size).
+                let iy = taps.first().map_or(lo, |&(i, _)| i);
+                dst.copy_from_slice(&tmp[(iy - lo) * row..(iy - lo + 1) * row]);
+                continue;
+            }
+            for &(iy, w) in taps {
+                let src = &tmp[(iy - lo) * row..(iy - lo + 1) * row];
+                for (d, s) in dst.iter_mut().zip(src) {
+                    *d += w * s;
+                }
+            }
+        }
+        Ok(Self {
+            width: new_w,
+            height: y1 - y0,
+            data: out,
+        })
     }
 
     /// A separable resize with the taps `weights(src, dst)` gives per axis.
@@ -115,7 +212,15 @@ impl ColorImage {
         new_w: usize,
         new_h: usize,
         weights: impl Fn(usize, usize) -> Vec<Vec<(usize, f32)>>,
+        deadline: Deadline,
     ) -> Result<Self, VisionError> {
+        let check = || {
+            if deadline.passed() {
+                Err(VisionError::DeadlineExceeded)
+            } else {
+                Ok(())
+            }
+        };
         if new_w == 0 || new_h == 0 {
             return Err(VisionError::EmptyImage {
                 width: new_w,
@@ -127,19 +232,29 @@ impl ColorImage {
         }
         let wx = FlatTaps::new(&weights(self.width, new_w));
         let wy = weights(self.height, new_h);
-        // Horizontal pass: height x new_w.
+        // Horizontal pass: height x new_w, DEADLINE_ROWS rows at a time.
         let mut tmp = vec![0.0f32; self.height * new_w * CHANNELS];
-        match wx.width {
-            1 => wx.horizontal::<1>(&self.data, self.width, &mut tmp),
-            2 => wx.horizontal::<2>(&self.data, self.width, &mut tmp),
-            3 => wx.horizontal::<3>(&self.data, self.width, &mut tmp),
-            4 => wx.horizontal::<4>(&self.data, self.width, &mut tmp),
-            _ => wx.horizontal_any(&self.data, self.width, &mut tmp),
+        let bands = self
+            .data
+            .chunks(DEADLINE_ROWS * self.width * CHANNELS)
+            .zip(tmp.chunks_mut(DEADLINE_ROWS * new_w * CHANNELS));
+        for (src, dst) in bands {
+            check()?;
+            match wx.width {
+                1 => wx.horizontal::<1>(src, self.width, dst),
+                2 => wx.horizontal::<2>(src, self.width, dst),
+                3 => wx.horizontal::<3>(src, self.width, dst),
+                4 => wx.horizontal::<4>(src, self.width, dst),
+                _ => wx.horizontal_any(src, self.width, dst),
+            }
         }
         // Vertical pass.
         let row = new_w * CHANNELS;
         let mut out = vec![0.0f32; new_h * row];
         for (oy, taps) in wy.iter().enumerate() {
+            if oy % DEADLINE_ROWS == 0 {
+                check()?;
+            }
             let dst = &mut out[oy * row..(oy + 1) * row];
             for &(iy, w) in taps {
                 let src = &tmp[iy * row..(iy + 1) * row];
@@ -155,6 +270,9 @@ impl ColorImage {
         })
     }
 }
+
+/// Rows of a resize pass between two looks at the deadline.
+const DEADLINE_ROWS: usize = 64;
 
 /// The taps of [`area_weights`] flattened to `width` per output (the
 /// widest output's count), the missing ones with weight 0 on the output's

@@ -6,7 +6,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::cells::FeatureKind;
+use super::cells::{FeatureKind, LearnedCells, STRIP_PIXELS};
 use super::hog::{HogMap, CELL_SIZE};
 use super::image::ColorImage;
 use super::segment::{segment_until, SegmentParams, Segmentation};
@@ -243,6 +243,15 @@ pub fn feature_levels(
             if deadline.passed() {
                 return Err(VisionError::DeadlineExceeded);
             }
+            // A large level of learned cells, strip by strip.
+            if params.features == FeatureKind::Cnn && lw * lh > STRIP_PIXELS {
+                let cells = LearnedCells::builtin()?;
+                return Ok((
+                    lw,
+                    lh,
+                    cells.level_cells_until(img, (lw, lh), STRIP_PIXELS, deadline)?,
+                ));
+            }
             // The full-size level reads the image itself.
             if (lw, lh) == (w, h) {
                 return Ok((lw, lh, params.features.cells_until(img, deadline)?));
@@ -250,8 +259,8 @@ pub fn feature_levels(
             // HOG levels as ever; learned cells see upsampled levels
             // interpolated, not in blocks.
             let resized = match params.features {
-                FeatureKind::Hog => img.resize_area(lw, lh)?,
-                FeatureKind::Cnn => img.resize_smooth(lw, lh)?,
+                FeatureKind::Hog => img.resize_area_until(lw, lh, deadline)?,
+                FeatureKind::Cnn => img.resize_smooth_until(lw, lh, deadline)?,
             };
             if deadline.passed() {
                 return Err(VisionError::DeadlineExceeded);

@@ -247,8 +247,19 @@ impl DisjointSets {
 
 /// Separable Gaussian smoothing of every channel, edges clamped.
 pub fn gaussian_blur(img: &ColorImage, sigma: f32) -> ColorImage {
+    // Nothing gives up without a deadline.
+    blur_checked(img, sigma, &|| Ok(())).unwrap_or_else(|_| img.clone())
+}
+
+/// [`gaussian_blur`] that stops with `check`'s error, looked at every 64
+/// rows of each pass.
+fn blur_checked(
+    img: &ColorImage,
+    sigma: f32,
+    check: &dyn Fn() -> Result<(), VisionError>,
+) -> Result<ColorImage, VisionError> {
     if sigma <= 0.0 {
-        return img.clone();
+        return Ok(img.clone());
     }
     let radius = (4.0 * sigma).ceil() as isize;
     let mut kernel: Vec<f32> = (-radius..=radius)
@@ -260,6 +271,9 @@ pub fn gaussian_blur(img: &ColorImage, sigma: f32) -> ColorImage {
     let src = img.data();
     let mut tmp = vec![0.0f32; src.len()];
     for y in 0..h {
+        if y % 64 == 0 {
+            check()?;
+        }
         for x in 0..w {
             let mut acc = [0.0f32; CHANNELS];
             for (k, &kv) in kernel.iter().enumerate() {
@@ -275,6 +289,9 @@ pub fn gaussian_blur(img: &ColorImage, sigma: f32) -> ColorImage {
     let row = w * CHANNELS;
     let mut out = vec![0.0f32; src.len()];
     for y in 0..h {
+        if y % 64 == 0 {
+            check()?;
+        }
         let dst = &mut out[y * row..(y + 1) * row];
         for (k, &kv) in kernel.iter().enumerate() {
             let yy = (y as isize + k as isize - radius).clamp(0, h as isize - 1) as usize;
@@ -284,18 +301,30 @@ pub fn gaussian_blur(img: &ColorImage, sigma: f32) -> ColorImage {
         }
     }
     // Dimensions are unchanged and samples stay finite.
-    ColorImage::new(w, h, out).unwrap_or_else(|_| img.clone())
+    Ok(ColorImage::new(w, h, out).unwrap_or_else(|_| img.clone()))
 }
 
 /// Neighbour offsets of the 8-connected graph (each undirected edge once).
 const DIRS: [(isize, isize); 4] = [(1, 0), (0, 1), (1, 1), (1, -1)];
 
 /// Stable LSD radix sort of `(key << 32) | payload` values by key.
+#[cfg(test)]
 fn radix_sort_by_key(items: &mut Vec<u64>) {
+    // Nothing gives up without a deadline.
+    let _ = radix_sort_checked(items, &|| Ok(()));
+}
+
+/// [`radix_sort_by_key`] that stops with `check`'s error, looked at
+/// before each pass (a pass over 16 M edges is tens of milliseconds).
+fn radix_sort_checked(
+    items: &mut Vec<u64>,
+    check: &dyn Fn() -> Result<(), VisionError>,
+) -> Result<(), VisionError> {
     let mut buf = vec![0u64; items.len()];
     const BITS: u32 = 11;
     const BUCKETS: usize = 1 << BITS;
     for pass in 0..3u32 {
+        check()?;
         let shift = 32 + pass * BITS;
         let mut count = vec![0usize; BUCKETS + 1];
         for &v in items.iter() {
@@ -315,6 +344,7 @@ fn radix_sort_by_key(items: &mut Vec<u64>) {
         }
         std::mem::swap(items, &mut buf);
     }
+    Ok(())
 }
 
 /// Segments an image.
@@ -348,7 +378,7 @@ pub fn segment_until(
     }
     let (w, h) = (img.width(), img.height());
     let (sw, sh) = (w.div_ceil(f), h.div_ceil(f));
-    let small = img.resize_area(sw, sh)?;
+    let small = img.resize_area_until(sw, sh, deadline)?;
     let p = SegmentParams {
         sigma: params.sigma / f as f32,
         min_size: params.min_size.div_ceil(f * f),
@@ -356,11 +386,15 @@ pub fn segment_until(
         ..*params
     };
     let s = segment_full(&small, &p, &check)?;
+    let mut raw: Vec<u32> = Vec::with_capacity(w * h);
+    for y in 0..h {
+        if y % 256 == 0 {
+            check()?;
+        }
+        let sy = (y / f).min(sh - 1);
+        raw.extend((0..w).map(|x| s.label((x / f).min(sw - 1), sy)));
+    }
     check()?;
-    let raw: Vec<u32> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| s.label((x / f).min(sw - 1), (y / f).min(sh - 1)))
-        .collect();
     compact(w, h, raw)
 }
 
@@ -370,8 +404,7 @@ fn segment_full(
     check: &dyn Fn() -> Result<(), VisionError>,
 ) -> Result<Segmentation, VisionError> {
     check()?;
-    let smooth = gaussian_blur(img, params.sigma);
-    check()?;
+    let smooth = blur_checked(img, params.sigma, check)?;
     let (w, h) = (smooth.width(), smooth.height());
     let n = w * h;
     if n > (u32::MAX / 4) as usize {
@@ -406,8 +439,7 @@ fn segment_full(
             }
         }
     }
-    check()?;
-    radix_sort_by_key(&mut edges);
+    radix_sort_checked(&mut edges, check)?;
     check()?;
     // Neighbour offsets per direction: no division when decoding an edge.
     let offsets: [isize; 4] = DIRS.map(|(dx, dy)| dy * w as isize + dx);

@@ -191,3 +191,57 @@ async fn connections_over_the_per_client_limit_are_refused() {
     assert!(text.contains("sdhop_http_connections_open 1"), "{text}");
     assert!(server.stop().await);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn memory_is_reserved_before_decoding_and_too_much_is_refused_saying_so() {
+    // The smallest budget: a 4000x3000 photograph with every shipped model
+    // needs more than all of it; a 640x480 one fits.
+    let server = Server::start(
+        InferConfig {
+            memory_budget_bytes: sdhop::infer::budget::MIN_BUDGET_BYTES,
+            ..InferConfig::default()
+        },
+        HttpConfig::default(),
+    )
+    .await;
+    let c = reqwest::Client::new();
+    let big = encode(&synthetic_scene(4, 4000, 3000), image::ImageFormat::Png);
+    let t = Instant::now();
+    let r = c
+        .post(server.url("/detect"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(big)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::PAYLOAD_TOO_LARGE);
+    let body: Value = r.json().await.unwrap();
+    let msg = body["error"].as_str().unwrap();
+    assert!(msg.contains("memory budget of 256 MiB"), "{msg}");
+    assert!(
+        t.elapsed() < Duration::from_secs(5),
+        "refused before decoding"
+    );
+    // /info says what the budget is.
+    let info: Value = c
+        .get(server.url("/info"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(info["limits"]["memory_budget_mb"], 256);
+    // A photograph that fits is answered, and the budget is whole again.
+    let small = encode(&synthetic_scene(3, 640, 480), image::ImageFormat::Png);
+    let r = c
+        .post(server.url("/detect"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(small)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    still_serving(&server).await;
+    assert!(server.stop().await);
+}

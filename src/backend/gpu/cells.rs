@@ -305,6 +305,17 @@ impl Context {
         &mut self,
         work: &[(&ColorImage, PyramidParams)],
     ) -> Result<Vec<Vec<HogMap>>, GpuError> {
+        self.learned_cells_of(work, None)
+    }
+
+    /// [`Self::learned_cells`] of level `only` alone (the index among
+    /// `level_sizes`), when given: a large image's levels are computed one
+    /// submission each, so that its deadline is looked at between them.
+    pub(super) fn learned_cells_of(
+        &mut self,
+        work: &[(&ColorImage, PyramidParams)],
+        only: Option<usize>,
+    ) -> Result<Vec<Vec<HogMap>>, GpuError> {
         let mut out: Vec<Vec<HogMap>> = vec![Vec::new(); work.len()];
         if work.is_empty() {
             return Ok(out);
@@ -328,7 +339,12 @@ impl Context {
             let src_off = src.len();
             src.extend_from_slice(img.data());
             let (w, h) = (img.width(), img.height());
-            for (lw, lh) in level_sizes(w, h, p) {
+            let wanted = level_sizes(w, h, p)
+                .into_iter()
+                .enumerate()
+                .filter(|(i, _)| only.is_none_or(|o| o == *i))
+                .map(|(_, s)| s);
+            for (lw, lh) in wanted {
                 let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
                 let d = LevelDesc {
                     src_w: to_u32(w, "width")?,

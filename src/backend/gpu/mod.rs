@@ -34,7 +34,7 @@ use crate::vision::energy::ViewWeights;
 use crate::vision::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
 use crate::vision::image::{area_weights, ColorImage};
 use crate::vision::pyramid::{feature_levels, FeaturePyramid, Level, PyramidParams, PyramidTiming};
-use crate::vision::segment::{segment, SegmentParams, Segmentation};
+use crate::vision::segment::{segment_until, SegmentParams, Segmentation};
 use crate::vision::{Deadline, VisionError};
 use features::level_sizes;
 
@@ -662,6 +662,40 @@ fn assemble(
 
 type JobResult = Result<Vec<FeaturePyramid>, BackendError>;
 
+/// Images above this many pixels have their learned cells computed a level
+/// per submission, their deadline looked at between levels (a 16 MP
+/// image's levels are seconds of work on a small device); smaller ones
+/// share one submission.
+const LEVELWISE_PIXELS: usize = 2_000_000;
+
+impl GpuBackend {
+    /// The learned cells of each job, one level per submission, giving up
+    /// on a job (with [`VisionError::DeadlineExceeded`]) once its deadline
+    /// has passed; `None` when the device failed (the CPU then computes
+    /// them).
+    fn learned_levelwise(
+        &mut self,
+        learned: &[(&ColorImage, PyramidParams, Deadline)],
+    ) -> Option<Vec<Result<Vec<HogMap>, VisionError>>> {
+        let mut out = Vec::with_capacity(learned.len());
+        for (img, p, deadline) in learned {
+            let levels = level_sizes(img.width(), img.height(), p).len();
+            let mut maps = Vec::with_capacity(levels);
+            let mut result = Ok(());
+            for l in 0..levels {
+                if deadline.passed() {
+                    result = Err(VisionError::DeadlineExceeded);
+                    break;
+                }
+                let mut level = self.with_ctx(|c| c.learned_cells_of(&[(*img, *p)], Some(l)))?;
+                maps.append(level.first_mut()?);
+            }
+            out.push(result.map(|()| maps));
+        }
+        Some(out)
+    }
+}
+
 impl Backend for GpuBackend {
     fn info(&self) -> BackendInfo {
         let mut device = self.adapter.to_string();
@@ -695,7 +729,7 @@ impl Backend for GpuBackend {
         // the CPU meanwhile.
         let mut work: Vec<(&ColorImage, PyramidParams)> = Vec::new();
         let mut learned: Vec<(&ColorImage, PyramidParams, Deadline)> = Vec::new();
-        let mut segs: Vec<(&ColorImage, SegmentParams)> = Vec::new();
+        let mut segs: Vec<(&ColorImage, SegmentParams, Deadline)> = Vec::new();
         for (j, ok) in batch.iter().zip(&checked) {
             if ok.is_ok() {
                 for (p, s) in j.settings {
@@ -704,7 +738,7 @@ impl Backend for GpuBackend {
                     } else {
                         learned.push((j.image, *p, j.deadline));
                     }
-                    segs.push((j.image, *s));
+                    segs.push((j.image, *s, j.deadline));
                 }
             }
         }
@@ -722,18 +756,25 @@ impl Backend for GpuBackend {
                     Some(Vec::new())
                 } else if learned.iter().any(|(_, _, d)| d.passed()) {
                     None
-                } else {
+                } else if learned
+                    .iter()
+                    .all(|(img, _, _)| img.width() * img.height() <= LEVELWISE_PIXELS)
+                {
                     let jobs: Vec<(&ColorImage, PyramidParams)> =
                         learned.iter().map(|(img, p, _)| (*img, *p)).collect();
                     self.with_ctx(|c| c.learned_cells(&jobs))
+                        .map(|maps| maps.into_iter().map(Ok).collect())
+                } else {
+                    self.learned_levelwise(&learned)
                 };
                 Some((hogs, hog_ms, cells, t.elapsed().as_secs_f64() * 1e3))
             },
             || {
                 segs.par_iter()
-                    .map(|(img, s)| {
+                    .map(|(img, s, deadline)| {
                         let t = Instant::now();
-                        segment(img, s).map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
+                        segment_until(img, s, *deadline)
+                            .map(|r| (r, t.elapsed().as_secs_f64() * 1e3))
                     })
                     .collect::<Vec<_>>()
             },
@@ -742,7 +783,7 @@ impl Backend for GpuBackend {
             return self.cpu.pyramids(batch);
         };
         let learned: Vec<Result<(Vec<HogMap>, f64), VisionError>> = match cells {
-            Some(maps) => maps.into_iter().map(|m| Ok((m, cells_ms))).collect(),
+            Some(maps) => maps.into_iter().map(|m| m.map(|m| (m, cells_ms))).collect(),
             // On the CPU, level by level within each deadline.
             None => learned
                 .par_iter()
