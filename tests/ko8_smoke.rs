@@ -106,9 +106,9 @@ fn the_default_answer_is_the_low_threshold_answer_cut_at_each_models_threshold()
         ..DetectOptions::default()
     };
     let photos = [
-        "single/test/bakingpan/bakingpan_003.jpg",
+        "single/test/bakingpan/bakingpan_001.jpg",
         "single/test/thermos/thermos_088.jpg",
-        "single/test/shaker/shaker_001.jpg",
+        "single/test/shaker/shaker_004.jpg",
     ];
     let key = |d: &sdhop::pipeline::DetectionJson| {
         let b = d.bbox;
