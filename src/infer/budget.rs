@@ -59,19 +59,22 @@ pub const fn level_bytes_per_pixel(kind: FeatureKind, resized: bool) -> u64 {
     match (kind, resized) {
         (FeatureKind::Hog, false) => 12,
         (FeatureKind::Hog, true) => 24,
-        (FeatureKind::Cnn, _) => 64,
+        (FeatureKind::Cnn, _) => 48,
     }
 }
 
 /// Bytes per pixel of the levels a pyramid keeps (per unit of level
 /// area), with `models` models scanning it: the cells (32 floats per 64
-/// pixels) and their segments; for learned cells also each model's stage-1
-/// planes and bounds (HOG models share a low-rank bound whose planes are
-/// small).
+/// pixels) and their segments; for learned cells scanned by several
+/// models also the stage-1 planes they share and each one's bounds (HOG
+/// models share a low-rank bound whose planes are small).
 pub const fn kept_bytes_per_pixel(kind: FeatureKind, models: u64) -> u64 {
     match kind {
         FeatureKind::Hog => 2,
-        FeatureKind::Cnn => 2 + 2 * models,
+        // The planes are shared by several models of one pyramid, and built
+        // only then.
+        FeatureKind::Cnn if models > 1 => 2 + 2 * models,
+        FeatureKind::Cnn => 2,
     }
 }
 
@@ -80,9 +83,9 @@ pub const fn kept_bytes_per_pixel(kind: FeatureKind, models: u64) -> u64 {
 // 4000x4000 photograph: the shipped cup model (HOG, 11 levels from 1 to
 // 0.5) 1176 MiB, estimated 1283; the eight shipped models about 1186 MiB,
 // estimated 1283; an LM-O learned-cell model (pyramid 0.80 to 2.11, 8
-// levels, levels in strips) 1684 MiB, estimated 2373; those eight and two
-// such learned-cell models 3592 MiB, estimated 3974. A 2000x2000 one with
-// the learned-cell model 776 MiB, estimated 1073.
+// levels, levels in strips) 1684 MiB, estimated 1713; those eight and two
+// such learned-cell models (two pyramids) 3592 MiB, estimated 4463. A
+// 2000x2000 one with the learned-cell model 776 MiB, estimated 788.
 
 /// The memory budget of a server: `budget` if given, else one derived
 /// from the container's memory limit (cgroup v2 or v1) minus
