@@ -170,7 +170,9 @@ impl NotReady {
             }
             NotReady::ShuttingDown => "shutting down".into(),
             NotReady::BackendUnhealthy => "the compute backend failed".into(),
-            NotReady::Overrunning => "a computation is running past its deadline".into(),
+            NotReady::Overrunning => {
+                "a computation is running more than 2 s past its deadline".into()
+            }
         }
     }
 }
