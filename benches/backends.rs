@@ -30,8 +30,12 @@ fn run_batch(
     opts: &DetectOptions,
 ) -> [f64; 5] {
     let settings = feature_settings(models);
+    let shared: Vec<std::sync::Arc<ColorImage>> = images
+        .iter()
+        .map(|i| std::sync::Arc::new(i.clone()))
+        .collect();
     let t0 = Instant::now();
-    let jobs: Vec<FeatureJob<'_>> = images
+    let jobs: Vec<FeatureJob<'_>> = shared
         .iter()
         .map(|image| FeatureJob {
             image,

@@ -379,8 +379,9 @@ fn detect_through(
     on_gpu: bool,
 ) -> sdhop::pipeline::DetectResponse {
     let settings = feature_settings(models);
+    let img = std::sync::Arc::new(img.clone());
     let job = FeatureJob {
-        image: img,
+        image: &img,
         settings: &settings,
         deadline: sdhop::vision::Deadline::NONE,
     };
@@ -480,8 +481,9 @@ fn buffers_are_reused_and_device_loss_falls_back_to_the_cpu() {
 
     gpu.destroy_device();
     let settings = feature_settings(&refs);
+    let image = std::sync::Arc::new(s.image.clone());
     let job = FeatureJob {
-        image: &s.image,
+        image: &image,
         settings: &settings,
         deadline: sdhop::vision::Deadline::NONE,
     };
@@ -494,7 +496,7 @@ fn buffers_are_reused_and_device_loss_falls_back_to_the_cpu() {
     );
     let cpu = CpuBackend
         .pyramids(&[FeatureJob {
-            image: &s.image,
+            image: &image,
             settings: &settings,
             deadline: sdhop::vision::Deadline::NONE,
         }])

@@ -28,7 +28,7 @@ impl Backend for CpuBackend {
                 job.settings
                     .iter()
                     .map(|(p, s)| {
-                        FeaturePyramid::build_until(job.image, p, s, job.deadline)
+                        FeaturePyramid::build_shared(job.image, p, s, job.deadline)
                             .map_err(BackendError::from)
                     })
                     .collect()

@@ -41,9 +41,10 @@ pub struct BackendInfo {
     pub device: String,
 }
 
-/// One image of a batch and the feature settings it needs.
+/// One image of a batch and the feature settings it needs. The pyramids
+/// built share the image (no copy of it).
 pub struct FeatureJob<'a> {
-    pub image: &'a ColorImage,
+    pub image: &'a std::sync::Arc<ColorImage>,
     pub settings: &'a [(PyramidParams, SegmentParams)],
     /// The request's deadline: a backend may give up on the job once it
     /// has passed ([`VisionError::DeadlineExceeded`]).

@@ -39,7 +39,7 @@ pub const LIMIT_HEADROOM_BYTES: u64 = 1024 * MIB;
 pub const MIN_BUDGET_BYTES: u64 = 256 * MIB;
 
 /// Bytes per pixel of the decoded image: RGB `f32`, held by the request
-/// and copied once into each pyramid.
+/// and shared by its pyramids.
 pub const IMAGE_BYTES_PER_PIXEL: u64 = 12;
 
 /// Bytes per pixel (of the full image) of one pyramid's segmentation at
@@ -57,8 +57,8 @@ pub const SEGMENT_BYTES_PER_PIXEL: u64 = 96;
 /// stops growing there.
 pub const fn level_bytes_per_pixel(kind: FeatureKind, resized: bool) -> u64 {
     match (kind, resized) {
-        (FeatureKind::Hog, false) => 12,
-        (FeatureKind::Hog, true) => 24,
+        (FeatureKind::Hog, false) => 20,
+        (FeatureKind::Hog, true) => 32,
         (FeatureKind::Cnn, _) => 48,
     }
 }
@@ -78,14 +78,12 @@ pub const fn kept_bytes_per_pixel(kind: FeatureKind, models: u64) -> u64 {
     }
 }
 
-// Measured against these (benches/request_memory.py, one request at a
-// time, peak resident memory above the idle process, 2 compute threads), a
-// 4000x4000 photograph: the shipped cup model (HOG, 11 levels from 1 to
-// 0.5) 1176 MiB, estimated 1283; the eight shipped models about 1186 MiB,
-// estimated 1283; an LM-O learned-cell model (pyramid 0.80 to 2.11, 8
-// levels, levels in strips) 1684 MiB, estimated 1713; those eight and two
-// such learned-cell models (two pyramids) 3592 MiB, estimated 4463. A
-// 2000x2000 one with the learned-cell model 776 MiB, estimated 788.
+// Measured against these (benches/request_memory.py, each case the first
+// request of a fresh server, peak resident memory above its idle process,
+// 2 compute threads), a 4000x4000 photograph: the shipped cup model (HOG,
+// 11 levels from 1 to 0.5) 1232 MiB, estimated 1344; the eight shipped
+// models 1105 MiB, estimated 1344; an LM-O learned-cell model (pyramid
+// 0.80 to 2.11, 8 levels, levels in strips) 1464 MiB, estimated 1530.
 
 /// The memory budget of a server: `budget` if given, else one derived
 /// from the container's memory limit (cgroup v2 or v1) minus
@@ -113,8 +111,8 @@ fn container_limit() -> Option<u64> {
 
 /// The estimated peak memory of detecting with `models` on a `width x
 /// height` image, in bytes: the decoded image, then for each distinct
-/// pyramid its copy of the image, its segmentation, the levels being
-/// computed at once (`threads` of the largest) and the levels it keeps.
+/// pyramid its segmentation, the levels being computed at once (`threads`
+/// of the largest) and the levels it keeps.
 pub fn request_bytes(width: usize, height: usize, models: &[&Model], threads: usize) -> u64 {
     let px = (width as u64).saturating_mul(height as u64);
     let pyramids: u64 = feature_settings(models)
@@ -136,10 +134,8 @@ pub fn request_bytes(width: usize, height: usize, models: &[&Model], threads: us
             let in_flight = (level * per_pixel as f64 * threads.max(1) as f64) as u64;
             let kept =
                 (px as f64 * total * kept_bytes_per_pixel(p.features, scanning) as f64) as u64;
-            px.saturating_mul(IMAGE_BYTES_PER_PIXEL)
-                .saturating_add(seg)
-                .saturating_add(in_flight)
-                .saturating_add(kept)
+            // (The pyramid shares the request's image: no copy of it.)
+            seg.saturating_add(in_flight).saturating_add(kept)
         })
         .fold(0u64, u64::saturating_add);
     px.saturating_mul(IMAGE_BYTES_PER_PIXEL)

@@ -176,7 +176,10 @@ impl Work {
     /// The image, models and options of the detection this request needs,
     /// if any (a pose request with `mask: "detect"` needs one).
     /// Its computation gives up at `deadline`.
-    fn detection(&self, deadline: Deadline) -> Option<(&ColorImage, Vec<&Model>, DetectOptions)> {
+    fn detection(
+        &self,
+        deadline: Deadline,
+    ) -> Option<(&Arc<ColorImage>, Vec<&Model>, DetectOptions)> {
         match self {
             Work::Detect(t, _) => Some((
                 &t.image,
@@ -188,7 +191,7 @@ impl Work {
             )),
             Work::Pose(t, _) => t.model.as_ref().map(|m| {
                 (
-                    t.image.as_ref(),
+                    &t.image,
                     vec![m.as_ref()],
                     DetectOptions {
                         deadline,

@@ -627,7 +627,7 @@ impl GpuBackend {
 /// Segmentation and the cells' segments on the CPU, around HOG maps built
 /// elsewhere.
 fn assemble(
-    img: &ColorImage,
+    img: &std::sync::Arc<ColorImage>,
     params: &PyramidParams,
     seg_params: &SegmentParams,
     hogs: Vec<HogMap>,
@@ -651,7 +651,7 @@ fn assemble(
     FeaturePyramid {
         image_width: w,
         image_height: h,
-        image: std::sync::Arc::new(img.clone()),
+        image: std::sync::Arc::clone(img),
         levels,
         segmentation,
         timing,
@@ -734,11 +734,11 @@ impl Backend for GpuBackend {
             if ok.is_ok() {
                 for (p, s) in j.settings {
                     if p.features.is_hog() {
-                        work.push((j.image, *p));
+                        work.push((j.image.as_ref(), *p));
                     } else {
-                        learned.push((j.image, *p, j.deadline));
+                        learned.push((j.image.as_ref(), *p, j.deadline));
                     }
-                    segs.push((j.image, *s, j.deadline));
+                    segs.push((j.image.as_ref(), *s, j.deadline));
                 }
             }
         }
