@@ -1,0 +1,443 @@
+//! The trained-weights file: safetensors tensors plus JSON metadata, read by
+//! the server and written by the trainer.
+//!
+//! Tensors, for viewpoint `a` (all `F32`):
+//! `view{a}.w_vis` `[rows, cols, 31]`, `view{a}.w_occ` `[rows, cols, 31]`,
+//! `view{a}.w_prior` `[rows, cols]`, `view{a}.w_hop` `[K + 1]`,
+//! `view{a}.scalars` `[3]` = `(w_trunc, W, bias)`, and from format 2 on,
+//! where the trainer learned one, `view{a}.shape` (`rows` times
+//! `cell_size` by `cols` times `cell_size`): the viewpoint's pixel shape
+//! model ([`crate::vision::shape`]), and `view{a}.colours` `[4096]`: the
+//! object's colour histogram from the training images.
+//!
+//! The safetensors metadata holds two keys: `sdhop`, whose value is the
+//! JSON of [`ModelMeta`], and from format 3 on `sdhop.sha256`, the SHA-256
+//! of that JSON and of every tensor ([`content_digest`]). Loading
+//! recomputes it and refuses a file whose tensors or metadata changed after
+//! it was written (a flipped byte, a header edited by hand), and format 3
+//! states the feature kind always, so that no learned-cell file is read as
+//! HOG. Files of formats 1 and 2 carry no digest: they are refused, and
+//! `sdhop-train upgrade` rewrites them as format 3 after the operator has
+//! vouched for them.
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::vision::cells::{FeatureKind, LearnedCells};
+use crate::vision::detect::{DetectParams, LowRank};
+use crate::vision::energy::{PairwiseMode, ViewWeights};
+use crate::vision::hog::{CELL_SIZE, HOG_DIM, HOG_STRIDE};
+use crate::vision::pyramid::PyramidParams;
+use crate::vision::segment::SegmentParams;
+use crate::vision::shape::{ShapeModel, COLOUR_BINS};
+use crate::vision::VisionError;
+
+/// Version of the weights format this build writes and serves.
+pub const FORMAT_VERSION: u32 = 3;
+/// The oldest version [`Model::from_legacy_bytes`] (`sdhop-train upgrade`)
+/// reads.
+pub const MIN_FORMAT_VERSION: u32 = 1;
+/// The first version with a digest and an explicit feature kind.
+pub const DIGEST_FORMAT_VERSION: u32 = 3;
+/// Metadata key of the JSON description.
+pub const META_KEY: &str = "sdhop";
+/// Metadata key of the digest ([`content_digest`]).
+pub const DIGEST_KEY: &str = "sdhop.sha256";
+/// Largest template side in cells a file may declare.
+pub const MAX_TEMPLATE_CELLS: usize = 256;
+
+/// Errors reading or writing a weights file.
+#[derive(Debug, Error)]
+pub enum ModelError {
+    #[error("cannot read or write {path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("not a valid safetensors file: {0}")]
+    Format(String),
+    #[error("missing metadata key `{META_KEY}`")]
+    MissingMeta,
+    #[error("bad metadata: {0}")]
+    Meta(String),
+    #[error("unsupported format version {found} (this build reads {MIN_FORMAT_VERSION} to {FORMAT_VERSION})")]
+    Version { found: u32 },
+    #[error("format version {found} has no digest of its contents: check the file is the one trained, then rewrite it with `sdhop-train upgrade FILE`")]
+    Legacy { found: u32 },
+    #[error("the file's contents do not match its digest (written {written}, computed {computed}): its tensors or metadata changed after training; restore or retrain it")]
+    Digest { written: String, computed: String },
+    #[error("missing metadata key `{DIGEST_KEY}` (a format {FORMAT_VERSION} file always has one)")]
+    MissingDigest,
+    #[error("the metadata does not state the feature kind (`pyramid.features`), which format {FORMAT_VERSION} requires")]
+    MissingFeatureKind,
+    #[error("missing tensor `{0}`")]
+    MissingTensor(String),
+    #[error("tensor `{name}` has dtype {dtype} and shape {shape:?}, expected F32 {expected:?}")]
+    Shape {
+        name: String,
+        dtype: String,
+        shape: Vec<usize>,
+        expected: Vec<usize>,
+    },
+    #[error("inconsistent model: {0}")]
+    Invalid(String),
+    #[error("invalid weights: {0}")]
+    Weights(#[from] VisionError),
+}
+
+/// A viewpoint's description.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewMeta {
+    /// Object label of this component (several objects can share a model).
+    pub label: String,
+    /// Template height in cells.
+    pub rows: usize,
+    /// Template width in cells.
+    pub cols: usize,
+    /// The component's mean viewing direction in the object's mesh frame
+    /// (unit vector from the object towards the camera), for models
+    /// trained from a mesh.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direction: Option<[f64; 3]>,
+    /// Representative rotations (camera from object, unit quaternions
+    /// `[w, x, y, z]`) of the component's training views, for models
+    /// trained from a mesh: the start poses of `POST /pose` without an
+    /// initial pose.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rotations: Vec<[f64; 4]>,
+    /// Where the component's training examples came from: the names of
+    /// its training views, the representative (medoid) first, or
+    /// `single-pose` for the masked occluded photographs of one viewpoint.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub views: Vec<String>,
+}
+
+/// A correction of the reported box, the simplest form of DPM's
+/// bounding-box prediction: the box's centre moves by `(dx * width, dy *
+/// height)` and its size is scaled by `(sw, sh)`. Fitted by
+/// cross-validation over the training photographs (`sdhop-train train
+/// --box-folds`): on photographs a template has not seen, learned cells
+/// fire on the core of the object and the window comes out smaller than
+/// the object's box (LM-O, box-only: median 0.82-0.85 of its size).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BoxCorrection {
+    pub dx: f64,
+    pub dy: f64,
+    pub sw: f64,
+    pub sh: f64,
+    /// Held-out detections it was fitted on.
+    pub samples: usize,
+}
+
+impl BoxCorrection {
+    /// Largest scale and shift a correction may apply.
+    pub const MAX_SCALE: f64 = 1.5;
+    pub const MAX_SHIFT: f64 = 0.25;
+
+    /// The corrected box of `(x, y, width, height)`.
+    pub fn apply(&self, (x, y, w, h): (f64, f64, f64, f64)) -> (f64, f64, f64, f64) {
+        let (cx, cy) = (x + 0.5 * w + self.dx * w, y + 0.5 * h + self.dy * h);
+        let (nw, nh) = (w * self.sw, h * self.sh);
+        (cx - 0.5 * nw, cy - 0.5 * nh, nw, nh)
+    }
+
+    /// Whether its numbers are within the limits above.
+    pub fn is_valid(&self) -> bool {
+        let scale =
+            |s: f64| s.is_finite() && (1.0 / Self::MAX_SCALE..=Self::MAX_SCALE).contains(&s);
+        let shift = |d: f64| d.is_finite() && d.abs() <= Self::MAX_SHIFT;
+        scale(self.sw) && scale(self.sh) && shift(self.dx) && shift(self.dy)
+    }
+}
+
+/// JSON metadata of a weights file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelMeta {
+    pub format_version: u32,
+    /// Model name (by convention the file stem).
+    pub name: String,
+    pub cell_size: usize,
+    /// Standard clique size `K` of the higher-order potentials.
+    pub hop_k: usize,
+    /// Which neighbour pairs carry the Potts term (absent in older files:
+    /// every 4-connected pair).
+    #[serde(default)]
+    pub pairwise: PairwiseMode,
+    pub pyramid: PyramidParams,
+    /// For learned cells (`pyramid.features` = `cnn`): the fingerprint of
+    /// the cell projection the model was trained on
+    /// ([`crate::vision::cells::CellProjection::fingerprint`]); a build
+    /// with other cells refuses the model. Absent for HOG.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cells: Option<String>,
+    pub segmentation: SegmentParams,
+    /// Default detection settings (threshold, NMS, truncation, refinement).
+    pub detection: DetectParams,
+    pub viewpoints: Vec<ViewMeta>,
+    /// How to turn a detection's template window into the box reported
+    /// (fitted on held-out training photographs; absent: the window as it
+    /// is).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub box_correction: Option<BoxCorrection>,
+    /// Free-form provenance: how the weights were made, settings, figures.
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+}
+
+/// A model: metadata, one weight set per viewpoint, and per viewpoint its
+/// pixel shape model where one was learned.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Model {
+    pub meta: ModelMeta,
+    pub views: Vec<ViewWeights>,
+    pub shapes: Vec<Option<ShapeModel>>,
+    /// Stage 1's low-rank bound of `views`, built on first use (see
+    /// [`Model::low_rank`]).
+    low_rank: LowRankCache,
+}
+
+/// A [`LowRank`] built once per model (not part of its value: two models
+/// with equal weights are equal whether it was built or not).
+#[derive(Clone, Default)]
+struct LowRankCache(std::sync::OnceLock<std::sync::Arc<LowRank>>);
+
+impl PartialEq for LowRankCache {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for LowRankCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.get().is_some() {
+            "LowRank(built)"
+        } else {
+            "LowRank(not built)"
+        })
+    }
+}
+
+impl Model {
+    /// Builds a model and checks it.
+    pub fn new(meta: ModelMeta, views: Vec<ViewWeights>) -> Result<Self, ModelError> {
+        let shapes = vec![None; views.len()];
+        Self::checked(meta, views, shapes)
+    }
+
+    /// The model of these parts, checked.
+    fn checked(
+        meta: ModelMeta,
+        views: Vec<ViewWeights>,
+        shapes: Vec<Option<ShapeModel>>,
+    ) -> Result<Self, ModelError> {
+        let m = Self {
+            meta,
+            views,
+            shapes,
+            low_rank: LowRankCache::default(),
+        };
+        m.validate()?;
+        Ok(m)
+    }
+
+    /// The model with these shape models (one per viewpoint); the file it
+    /// writes is of the current format.
+    pub fn with_shapes(mut self, shapes: Vec<Option<ShapeModel>>) -> Result<Self, ModelError> {
+        self.shapes = shapes;
+        self.meta.format_version = FORMAT_VERSION;
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// Stage 1's low-rank bound of the components' filters, built on the
+    /// first call (the weights must not change afterwards).
+    pub fn low_rank(&self) -> &LowRank {
+        self.low_rank
+            .0
+            .get_or_init(|| std::sync::Arc::new(LowRank::new(&self.views)))
+    }
+
+    /// The pixel size `(width, height)` of viewpoint `a`'s shape model.
+    pub fn shape_size(&self, a: usize) -> (usize, usize) {
+        let v = &self.meta.viewpoints[a];
+        (v.cols * self.meta.cell_size, v.rows * self.meta.cell_size)
+    }
+
+    /// Distinct object labels, in viewpoint order.
+    pub fn labels(&self) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        for v in &self.meta.viewpoints {
+            if !out.contains(&v.label) {
+                out.push(v.label.clone());
+            }
+        }
+        out
+    }
+
+    /// Checks the metadata against the weights and the weights themselves.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let m = &self.meta;
+        if !(MIN_FORMAT_VERSION..=FORMAT_VERSION).contains(&m.format_version) {
+            return Err(ModelError::Version {
+                found: m.format_version,
+            });
+        }
+        if self.shapes.len() != self.views.len() {
+            return Err(ModelError::Invalid(format!(
+                "{} shape model slots for {} viewpoints",
+                self.shapes.len(),
+                self.views.len()
+            )));
+        }
+        if m.cell_size != CELL_SIZE {
+            return Err(ModelError::Invalid(format!(
+                "cell size {} (this build computes {CELL_SIZE}-pixel cells)",
+                m.cell_size
+            )));
+        }
+        if m.hop_k == 0 || m.hop_k > 64 {
+            return Err(ModelError::Invalid(format!(
+                "K = {} out of range 1..=64",
+                m.hop_k
+            )));
+        }
+        if m.viewpoints.is_empty() || m.viewpoints.len() != self.views.len() {
+            return Err(ModelError::Invalid(format!(
+                "{} viewpoints described, {} weight sets",
+                m.viewpoints.len(),
+                self.views.len()
+            )));
+        }
+        if m.name.is_empty() {
+            return Err(ModelError::Invalid("empty model name".into()));
+        }
+        if let Some(c) = m.box_correction.filter(|c| !c.is_valid()) {
+            return Err(ModelError::Invalid(format!(
+                "box correction {c:?} out of range (shift at most {}, scale within 1/{} .. {})",
+                BoxCorrection::MAX_SHIFT,
+                BoxCorrection::MAX_SCALE,
+                BoxCorrection::MAX_SCALE
+            )));
+        }
+        for (a, (vm, w)) in m.viewpoints.iter().zip(&self.views).enumerate() {
+            if vm.rows == 0
+                || vm.cols == 0
+                || vm.rows > MAX_TEMPLATE_CELLS
+                || vm.cols > MAX_TEMPLATE_CELLS
+            {
+                return Err(ModelError::Invalid(format!(
+                    "viewpoint {a}: template {}x{} cells out of range",
+                    vm.rows, vm.cols
+                )));
+            }
+            if (vm.rows, vm.cols) != (w.rows, w.cols)
+                || w.w_hop.len() != m.hop_k + 1
+                || w.pair_mode != m.pairwise
+            {
+                return Err(ModelError::Invalid(format!(
+                    "viewpoint {a}: metadata and weights disagree"
+                )));
+            }
+            w.validate()?;
+            if let Some(Some(s)) = self.shapes.get(a) {
+                let (sw, sh) = (vm.cols * m.cell_size, vm.rows * m.cell_size);
+                if !s.valid() || (s.width, s.height) != (sw, sh) {
+                    return Err(ModelError::Invalid(format!(
+                        "viewpoint {a}: shape model {}x{} (expected {sw}x{sh}, probabilities in [0, 1])",
+                        s.width, s.height
+                    )));
+                }
+                if m.format_version < 2 {
+                    return Err(ModelError::Invalid(
+                        "shape models need format version 2".into(),
+                    ));
+                }
+            }
+        }
+        m.pyramid.validate()?;
+        match (m.pyramid.features, &m.cells) {
+            (FeatureKind::Hog, None) => {}
+            (FeatureKind::Hog, Some(_)) => {
+                return Err(ModelError::Invalid(
+                    "a HOG model names a cell projection".into(),
+                ))
+            }
+            (FeatureKind::Cnn, cells) => {
+                let here = LearnedCells::builtin()?.projection.fingerprint();
+                if cells.as_deref() != Some(here.as_str()) {
+                    return Err(ModelError::Invalid(format!(
+                        "trained on learned cells {}, this build computes cells {here}: retrain the model with this build",
+                        cells.as_deref().unwrap_or("(none named)")
+                    )));
+                }
+            }
+        }
+        m.segmentation.validate()?;
+        m.detection.validate()?;
+        Ok(())
+    }
+
+    /// This model with `other`'s components appended, each of their scores
+    /// moved by `offset` (taken from their bias): a single-pose model joined
+    /// with view components trained apart, their scores calibrated against
+    /// its own (`sdhop-train join`). Both must be models of one object, of
+    /// the same cells, pyramid, segmentation, `K` and pairwise mode; the
+    /// detection settings, box correction and name are this model's, and
+    /// `other`'s provenance is kept under `joined`.
+    pub fn joined(&self, other: &Model, offset: f64) -> Result<Model, ModelError> {
+        let (a, b) = (&self.meta, &other.meta);
+        let differ = |what: &str| {
+            Err(ModelError::Invalid(format!(
+                "cannot join {} and {}: their {what} differ",
+                a.name, b.name
+            )))
+        };
+        if self.labels() != other.labels() || self.labels().len() != 1 {
+            return differ("objects (each must be a model of the same one object)");
+        }
+        if a.pyramid != b.pyramid || a.cells != b.cells {
+            return differ("cell features or pyramids");
+        }
+        if a.segmentation != b.segmentation {
+            return differ("segmentation settings");
+        }
+        if (a.hop_k, a.pairwise) != (b.hop_k, b.pairwise) {
+            return differ("higher-order K or pairwise modes");
+        }
+        if !offset.is_finite() {
+            return Err(ModelError::Invalid(format!(
+                "join offset must be finite, got {offset}"
+            )));
+        }
+        let mut meta = a.clone();
+        meta.viewpoints.extend(b.viewpoints.iter().cloned());
+        meta.format_version = a.format_version.max(b.format_version);
+        if let Some(p) = meta.provenance.as_object_mut() {
+            p.insert(
+                "joined".into(),
+                serde_json::json!({
+                    "components_from": b.name,
+                    "offset": offset,
+                    "provenance": b.provenance,
+                }),
+            );
+        }
+        let mut views = self.views.clone();
+        views.extend(other.views.iter().map(|w| {
+            // A detection's score is minus its energy, which adds the bias.
+            let mut w = w.clone();
+            w.bias -= offset as f32;
+            w
+        }));
+        let mut shapes = self.shapes.clone();
+        shapes.extend(other.shapes.iter().cloned());
+        Self::checked(meta, views, shapes)
+    }
+}
+
+mod file;
+pub use file::content_digest;
+
+#[cfg(test)]
+mod tests;
