@@ -492,9 +492,31 @@ impl<'a> Detector<'a> {
         pre: Option<&DenseBounds>,
     ) -> (Vec<Solved>, DetectStats) {
         let mut stats = DetectStats::default();
+        let t = Instant::now();
+        let cands = self.candidates(pyr, params, aug, pre, &mut stats);
+        stats.pruned_stage1 = stats.locations.saturating_sub(cands.len());
+        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
+        let t = Instant::now();
+        let solved = self.branch_and_bound(pyr, params, aug, budget, cands, &mut stats);
+        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
+        stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
+        (solved, stats)
+    }
+
+    /// Stage 1: every location whose bound can still matter, with its
+    /// bound (those a transfer or the region asks for added or kept, those
+    /// the loss augmentation excludes left out); counts the locations
+    /// scanned in `stats`.
+    fn candidates(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        aug: Option<&dyn LossAugment>,
+        pre: Option<&DenseBounds>,
+        stats: &mut DetectStats,
+    ) -> Vec<Candidate> {
         let max_loss = aug.map_or(0.0, |a| a.max_loss());
         let cut = -params.threshold;
-        let t = Instant::now();
         let pad_x = self.views.iter().map(|v| v.w.cols).max().unwrap_or(0);
         let pad_y = self.views.iter().map(|v| v.w.rows).max().unwrap_or(0);
         let own: Vec<PlanarMap>;
@@ -567,41 +589,65 @@ impl<'a> Detector<'a> {
                 box_iou(self.grid(pyr, &c.location()).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
             });
         }
-        if let Some(tr) = self.transfer {
-            // Transferred responses can lower an energy below its stage-1
-            // bound: every location meeting a claimed cell is visited.
-            let mut seen = std::collections::HashSet::new();
-            for c in cands.iter_mut() {
-                let w = self.views[c.view].w;
-                if tr.meets(c.level, c.x, c.y, w.cols, w.rows) {
-                    c.bound = f64::NEG_INFINITY;
-                }
-                seen.insert(c.location());
-            }
-            for loc in self.locations(pyr, params.max_truncation) {
-                let w = self.views[loc.view].w;
-                if seen.contains(&loc) || !tr.meets(loc.level, loc.x, loc.y, w.cols, w.rows) {
-                    continue;
-                }
-                let c = Candidate {
-                    view: loc.view,
-                    level: loc.level,
-                    x: loc.x,
-                    y: loc.y,
-                    bound: f64::NEG_INFINITY,
-                };
-                if params.region.is_none_or(|r| {
-                    box_iou(self.grid(pyr, &loc).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
-                }) {
-                    cands.push(c);
-                }
-            }
-        }
+        self.add_transferred(pyr, params, &mut cands);
         if let Some(a) = aug {
             cands.retain(|c| !a.excludes(c.view, &self.grid(pyr, &c.location())));
         }
-        stats.pruned_stage1 = stats.locations.saturating_sub(cands.len());
-        stats.responses_ms = t.elapsed().as_secs_f64() * 1e3;
+        cands
+    }
+
+    /// With a transfer, every location meeting a claimed cell is visited:
+    /// transferred responses can lower an energy below its stage-1 bound.
+    fn add_transferred(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        cands: &mut Vec<Candidate>,
+    ) {
+        let Some(tr) = self.transfer else {
+            return;
+        };
+        let mut seen = std::collections::HashSet::new();
+        for c in cands.iter_mut() {
+            let w = self.views[c.view].w;
+            if tr.meets(c.level, c.x, c.y, w.cols, w.rows) {
+                c.bound = f64::NEG_INFINITY;
+            }
+            seen.insert(c.location());
+        }
+        for loc in self.locations(pyr, params.max_truncation) {
+            let w = self.views[loc.view].w;
+            if seen.contains(&loc) || !tr.meets(loc.level, loc.x, loc.y, w.cols, w.rows) {
+                continue;
+            }
+            let c = Candidate {
+                view: loc.view,
+                level: loc.level,
+                x: loc.x,
+                y: loc.y,
+                bound: f64::NEG_INFINITY,
+            };
+            if params.region.is_none_or(|r| {
+                box_iou(self.grid(pyr, &loc).pixel_box(), r.bbox) >= r.min_iou.max(1e-12)
+            }) {
+                cands.push(c);
+            }
+        }
+    }
+
+    /// Stages 2 and 3: the candidates' min-cuts in order of their bound,
+    /// branch and bound on the cut-off; the solved locations at or under
+    /// the threshold's energy.
+    fn branch_and_bound(
+        &self,
+        pyr: &FeaturePyramid,
+        params: &DetectParams,
+        aug: Option<&dyn LossAugment>,
+        budget: Option<usize>,
+        mut cands: Vec<Candidate>,
+        stats: &mut DetectStats,
+    ) -> Vec<Solved> {
+        let cut = -params.threshold;
         // Visit in order of the bound (ties in a fixed order).
         let order = |a: &Candidate, b: &Candidate| {
             a.bound
@@ -609,7 +655,6 @@ impl<'a> Detector<'a> {
                 .then((a.level, a.view, a.y, a.x).cmp(&(b.level, b.view, b.y, b.x)))
         };
 
-        let t = Instant::now();
         // Branch and bound: locations are visited in order of their bound,
         // and once `max_detections` detections survive non-maximum
         // suppression among those solved, the worst of them is the cut-off:
@@ -732,9 +777,7 @@ impl<'a> Detector<'a> {
                 }
             }
         }
-        stats.pruned_stage2 = stats.locations - stats.pruned_stage1 - stats.min_cuts;
-        stats.mincut_ms = t.elapsed().as_secs_f64() * 1e3;
-        (solved, stats)
+        solved
     }
 
     /// The detections of `solved` (sorted) that survive greedy non-maximum
