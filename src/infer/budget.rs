@@ -214,15 +214,6 @@ impl MemoryBudget {
             }),
         }
     }
-
-    /// Reserves `bytes` now if they are free (for tests and tools).
-    pub fn try_reserve(&self, bytes: u64) -> Option<Reservation> {
-        let mib = bytes.div_ceil(MIB).max(1).min(u32::MAX as u64) as u32;
-        Arc::clone(&self.units)
-            .try_acquire_many_owned(mib)
-            .ok()
-            .map(|units| Reservation { _units: units, mib })
-    }
 }
 
 #[cfg(test)]
