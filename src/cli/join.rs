@@ -193,6 +193,45 @@ fn fill_cache(cache: &PyramidCache, images: &[&Sample], m: &Model) -> Result<(),
     Ok(())
 }
 
+/// The settings the check compares: for each colour weight asked for (the
+/// base model's own without any), not joining and joining at each offset.
+fn settings_grid(args: &JoinArgs, m0: &Model) -> Vec<Setting> {
+    let mut weights = args.colour_weights.clone();
+    if weights.is_empty() {
+        weights.push(m0.meta.detection.colour_weight);
+    }
+    weights
+        .iter()
+        .flat_map(|&colour_weight| {
+            std::iter::once(None)
+                .chain(args.offsets.iter().map(|&o| Some(o)))
+                .map(move |offset| Setting {
+                    offset,
+                    colour_weight,
+                    threshold: None,
+                })
+        })
+        .collect()
+}
+
+/// One candidate per base model and setting, not yet scored.
+fn blank_candidates(base: &[Model], settings: &[Setting]) -> Vec<Vec<Candidate>> {
+    base.iter()
+        .map(|_| {
+            settings
+                .iter()
+                .map(|&setting| Candidate {
+                    setting,
+                    folds: Vec::new(),
+                    held_out: 0.0,
+                    single: None,
+                    admissible: true,
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// The setting chosen per object by the folds, with every candidate's
 /// figures.
 fn choose_settings(
@@ -221,37 +260,8 @@ fn choose_settings(
     let m0 = base
         .first()
         .ok_or_else(|| Failure::input("no base model"))?;
-    let mut weights = args.colour_weights.clone();
-    if weights.is_empty() {
-        weights.push(m0.meta.detection.colour_weight);
-    }
-    let settings: Vec<Setting> = weights
-        .iter()
-        .flat_map(|&colour_weight| {
-            std::iter::once(None)
-                .chain(args.offsets.iter().map(|&o| Some(o)))
-                .map(move |offset| Setting {
-                    offset,
-                    colour_weight,
-                    threshold: None,
-                })
-        })
-        .collect();
-    let mut cands: Vec<Vec<Candidate>> = base
-        .iter()
-        .map(|_| {
-            settings
-                .iter()
-                .map(|&setting| Candidate {
-                    setting,
-                    folds: Vec::new(),
-                    held_out: 0.0,
-                    single: None,
-                    admissible: true,
-                })
-                .collect()
-        })
-        .collect();
+    let settings = settings_grid(args, m0);
+    let mut cands = blank_candidates(base, &settings);
     let position =
         |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
     let n = args.check_folds.len();
