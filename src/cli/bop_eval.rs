@@ -180,20 +180,13 @@ fn id_of(label: &str) -> Option<u32> {
         .map(|(id, _)| *id)
 }
 
-/// Scores one folder of models.
-#[allow(clippy::too_many_arguments)]
-fn evaluate(
-    name: &str,
-    dir: &Path,
+/// The labels of `models` that name an object annotated in `bop`, with its
+/// BOP id; refused when there is none.
+fn annotated_labels(
+    models: &[Model],
     bop: &Bop,
-    images: &[usize],
-    args: &BopEvalArgs,
-    pose: bool,
-    transfer: bool,
-    meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
-) -> Result<Variant, Failure> {
-    let models = load_model_dir(dir)?;
-    let refs: Vec<&Model> = models.iter().collect();
+    dir: &Path,
+) -> Result<Vec<(String, u32)>, Failure> {
     let labels: Vec<(String, u32)> = models
         .iter()
         .flat_map(|m| m.meta.viewpoints.iter().map(|v| v.label.clone()))
@@ -212,6 +205,24 @@ fn evaluate(
             dir.display()
         )));
     }
+    Ok(labels)
+}
+
+/// Scores one folder of models.
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    name: &str,
+    dir: &Path,
+    bop: &Bop,
+    images: &[usize],
+    args: &BopEvalArgs,
+    pose: bool,
+    transfer: bool,
+    meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
+) -> Result<Variant, Failure> {
+    let models = load_model_dir(dir)?;
+    let refs: Vec<&Model> = models.iter().collect();
+    let labels = annotated_labels(&models, bop, dir)?;
     let opts = DetectOptions {
         threshold: Some(args.threshold),
         max_detections: Some(args.max_detections),
