@@ -8,17 +8,12 @@
 //! on the same photographs beside it. Prints tables, writes a JSON report
 //! and a plot.
 
-use std::time::Instant;
-
-use nalgebra::Vector3;
-
 use super::*;
-use crate::data::bop::{Bop, LINEMOD_NAMES};
-use crate::eval::bop_detect::{add_s, score_object, scored_instance, DetectScore};
-use crate::eval::bop_pose::{add, add_points, errors, intrinsics, truth_pose};
-use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
-use crate::pose::api::{estimate, MaskSource, PoseParams};
-use crate::pose::geometry::Pose;
+use crate::data::bop::Bop;
+#[cfg(test)]
+use crate::eval::bop_detect::DetectScore;
+use crate::eval::bop_pose::add_points;
+use crate::eval::bop_run::{evaluate, name_of, PoseMask, PoseOutcome, ScanSettings, Variant};
 use crate::pose::Mesh;
 
 #[derive(clap::Args)]
@@ -78,14 +73,6 @@ pub(crate) struct BopEvalArgs {
     pub(crate) out: PathBuf,
 }
 
-/// The mask of the pose from no start's refinements (`--pose-mask`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum PoseMask {
-    Detect,
-    Oracle,
-    None,
-}
-
 fn parse_named_dir(text: &str) -> Result<(String, PathBuf), String> {
     match text.split_once('=') {
         Some((n, d)) if !n.trim().is_empty() && !d.trim().is_empty() => {
@@ -93,320 +80,6 @@ fn parse_named_dir(text: &str) -> Result<(String, PathBuf), String> {
         }
         _ => Err(format!("expected NAME=DIR, got {text:?}")),
     }
-}
-
-/// Pose from no start of one instance.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
-struct PoseOutcome {
-    object: String,
-    image: u32,
-    k: usize,
-    visib_fract: f64,
-    /// `None`: no pose (the request was refused, e.g. nothing detected).
-    add: Option<f64>,
-    add_ok: bool,
-    /// ADD(-S) between 10% and 20% of the diameter: just past.
-    #[serde(default)]
-    near_miss: bool,
-    success: bool,
-    t_error: Option<f64>,
-    /// The answer's depth less the truth's (mm; positive: too far), and
-    /// its error across the viewing direction.
-    #[serde(default)]
-    depth_error: Option<f64>,
-    #[serde(default)]
-    lateral_error: Option<f64>,
-    angle: Option<f64>,
-    seconds: f64,
-    error: Option<String>,
-    /// Where it failed, stage by stage: the box IoU of the detection the
-    /// answer came from with the object's true box; the start pose's
-    /// translation error and angle; the least angle between the truth and
-    /// any start rotation of the detected component (could any start
-    /// have been near?), and of every component.
-    #[serde(default)]
-    detection_iou: Option<f64>,
-    #[serde(default)]
-    start_t_error: Option<f64>,
-    #[serde(default)]
-    start_angle: Option<f64>,
-    #[serde(default)]
-    nearest_rotation: Option<f64>,
-    #[serde(default)]
-    nearest_rotation_any: Option<f64>,
-}
-
-/// One variant's figures.
-#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
-struct Variant {
-    name: String,
-    models_dir: String,
-    /// The models' cell features (`hog`, `cnn`).
-    #[serde(default)]
-    features: String,
-    objects: Vec<DetectScore>,
-    mean_auc: f64,
-    mean_seg_error: f64,
-    mean_seg_error_raw: f64,
-    mean_recall_at_1fppi: f64,
-    detect_ms_per_image: f64,
-    #[serde(skip_serializing_if = "Vec::is_empty", default)]
-    pose: Vec<PoseOutcome>,
-}
-
-impl Variant {
-    /// The means over the objects of their figures.
-    fn set_means(&mut self) {
-        let n = self.objects.len().max(1) as f64;
-        let mean = |f: &dyn Fn(&DetectScore) -> f64| self.objects.iter().map(f).sum::<f64>() / n;
-        self.mean_auc = mean(&|s| s.auc);
-        self.mean_seg_error = mean(&|s| s.seg_error);
-        self.mean_seg_error_raw = mean(&|s| s.seg_error_raw);
-        self.mean_recall_at_1fppi = mean(&|s| s.recall_at_1fppi);
-    }
-}
-
-fn name_of(obj: u32) -> Option<&'static str> {
-    LINEMOD_NAMES
-        .iter()
-        .find(|(id, _)| *id == obj)
-        .map(|(_, n)| *n)
-}
-
-fn id_of(label: &str) -> Option<u32> {
-    LINEMOD_NAMES
-        .iter()
-        .find(|(_, n)| *n == label)
-        .map(|(id, _)| *id)
-}
-
-/// The labels of `models` that name an object annotated in `bop`, with its
-/// BOP id; refused when there is none.
-fn annotated_labels(
-    models: &[Model],
-    bop: &Bop,
-    dir: &Path,
-) -> Result<Vec<(String, u32)>, Failure> {
-    let labels: Vec<(String, u32)> = models
-        .iter()
-        .flat_map(|m| m.meta.viewpoints.iter().map(|v| v.label.clone()))
-        .collect::<std::collections::BTreeSet<_>>()
-        .into_iter()
-        .filter_map(|l| id_of(&l).map(|id| (l, id)))
-        .filter(|(_, id)| {
-            bop.images
-                .iter()
-                .any(|im| im.instances.iter().any(|g| g.obj_id == *id))
-        })
-        .collect();
-    if labels.is_empty() {
-        return Err(Failure::input(format!(
-            "{}: no model carries the BOP name of an annotated object (ape, can, cat, ...)",
-            dir.display()
-        )));
-    }
-    Ok(labels)
-}
-
-/// Scores one folder of models.
-#[allow(clippy::too_many_arguments)]
-fn evaluate(
-    name: &str,
-    dir: &Path,
-    bop: &Bop,
-    images: &[usize],
-    args: &BopEvalArgs,
-    pose: bool,
-    transfer: bool,
-    meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
-) -> Result<Variant, Failure> {
-    let models = load_model_dir(dir)?;
-    let refs: Vec<&Model> = models.iter().collect();
-    let labels = annotated_labels(&models, bop, dir)?;
-    let opts = DetectOptions {
-        threshold: Some(args.threshold),
-        max_detections: Some(args.max_detections),
-        masks: MaskMode::Both,
-        transfer,
-        ..DetectOptions::default()
-    };
-    let pb = progress_bar(images.len() as u64, &format!("{name}: detecting"));
-    let mut detections: Vec<Vec<DetectionJson>> = vec![Vec::new(); bop.images.len()];
-    let t = Instant::now();
-    for &i in images {
-        let img = read_image(&bop.rgb_path(&bop.images[i]), usize::MAX)?;
-        detections[i] = detect_image(&img, &refs, &opts)
-            .map_err(Failure::input)?
-            .detections;
-        pb.inc(1);
-    }
-    pb.finish_and_clear();
-    let detect_ms = t.elapsed().as_secs_f64() * 1e3 / images.len().max(1) as f64;
-    let objects: Vec<DetectScore> = labels
-        .iter()
-        .map(|(label, id)| {
-            score_object(
-                bop,
-                images,
-                &detections,
-                *id,
-                label,
-                args.max_oracle_gap,
-                |im, k| crate::data::load_mask(&bop.mask_visib_path(im, k)).ok(),
-            )
-        })
-        .collect();
-    let mut poses = Vec::new();
-    if pose {
-        let cases: Vec<(usize, usize, &str, u32)> = images
-            .iter()
-            .flat_map(|&i| {
-                let labels = &labels;
-                bop.images[i].instances.iter().filter_map(move |g| {
-                    let (label, _) = labels.iter().find(|(_, id)| *id == g.obj_id)?;
-                    scored_instance(g, args.max_oracle_gap).then_some((
-                        i,
-                        g.k,
-                        label.as_str(),
-                        g.obj_id,
-                    ))
-                })
-            })
-            .collect();
-        let pb = progress_bar(cases.len() as u64, &format!("{name}: pose from no start"));
-        for (i, k, label, obj) in cases {
-            let image = &bop.images[i];
-            let g = &image.instances[k];
-            let truth = truth_pose(g)
-                .ok_or_else(|| Failure::input(format!("image {}: bad pose", image.id)))?;
-            let (mesh, points) = &meshes[&obj];
-            let info = &bop.models[&obj];
-            let img = read_image(&bop.rgb_path(image), usize::MAX)?;
-            // The model that detects this object (one of several objects'
-            // when trained jointly: then the request names the object).
-            let model = models
-                .iter()
-                .find(|m| m.labels().iter().any(|l| l == label))
-                .ok_or_else(|| Failure::input(format!("no model detects {label}")))?;
-            let (mask_source, mask) = match args.pose_mask {
-                PoseMask::Detect => (None, None),
-                PoseMask::None => (Some(MaskSource::None), None),
-                PoseMask::Oracle => (
-                    Some(MaskSource::Provided),
-                    Some(
-                        crate::data::load_mask(&bop.mask_visib_path(image, k))
-                            .map_err(Failure::input)?,
-                    ),
-                ),
-            };
-            let params = PoseParams {
-                intrinsics: intrinsics(image),
-                initial_pose: None,
-                label: (model.labels().len() > 1).then(|| label.to_string()),
-                model: Some(model.meta.name.clone()),
-                mask: mask_source,
-                max_iterations: None,
-                start_uncertainty: None,
-            };
-            let t = Instant::now();
-            let answer = estimate(&img, mesh, &params, mask, &refs);
-            let seconds = t.elapsed().as_secs_f64();
-            let mut out = PoseOutcome {
-                object: label.to_string(),
-                image: image.id,
-                k,
-                visib_fract: g.visib_fract,
-                add: None,
-                add_ok: false,
-                near_miss: false,
-                success: false,
-                t_error: None,
-                depth_error: None,
-                lateral_error: None,
-                angle: None,
-                seconds,
-                error: None,
-                detection_iou: None,
-                start_t_error: None,
-                start_angle: None,
-                nearest_rotation: None,
-                nearest_rotation_any: None,
-            };
-            // The least angle from the truth to a set of start rotations.
-            let nearest = |qs: &mut dyn Iterator<Item = &[f64; 4]>| {
-                qs.filter_map(crate::pose::start::rotation_from_quaternion)
-                    .map(|r| {
-                        let p = Pose {
-                            rotation: r,
-                            translation: truth.translation,
-                        };
-                        errors(&p, &truth, &info.symmetries_discrete).2
-                    })
-                    .min_by(f64::total_cmp)
-            };
-            let views = &model.meta.viewpoints;
-            out.nearest_rotation_any = nearest(&mut views.iter().flat_map(|v| v.rotations.iter()));
-            match answer {
-                Ok(a) => {
-                    if let (Some(d), Some(b)) = (&a.detection, g.bbox_obj) {
-                        out.detection_iou = Some(box_iou(
-                            (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
-                            (b[0], b[1], b[2], b[3]),
-                        ));
-                        out.nearest_rotation = views
-                            .get(d.viewpoint)
-                            .and_then(|v| nearest(&mut v.rotations.iter()));
-                    }
-                    if let Some(sp) = a
-                        .start_pose
-                        .and_then(|sp| Pose::from_client(sp.rotation, sp.translation).ok())
-                    {
-                        let (_, te, angle) = errors(&sp, &truth, &info.symmetries_discrete);
-                        out.start_t_error = Some(te);
-                        out.start_angle = Some(angle);
-                    }
-                    if let Ok(est) = Pose::from_client(a.pose.rotation, a.pose.translation) {
-                        let symmetric = !info.symmetries_discrete.is_empty();
-                        let e = if symmetric {
-                            add_s(&est, &truth, points)
-                        } else {
-                            add(&est, &truth, &[], points)
-                        };
-                        let (_, te, angle) = errors(&est, &truth, &info.symmetries_discrete);
-                        out.add = Some(e);
-                        out.add_ok = e < 0.1 * info.diameter;
-                        out.near_miss = !out.add_ok && e < 0.2 * info.diameter;
-                        out.success = te < 0.1 * info.diameter && angle < 5.0;
-                        out.t_error = Some(te);
-                        out.angle = Some(angle);
-                        // Along and across the truth's viewing ray.
-                        let ray = truth.translation.normalize();
-                        let d = est.translation - truth.translation;
-                        out.depth_error = Some(d.dot(&ray));
-                        out.lateral_error = Some((d - ray * d.dot(&ray)).norm());
-                    }
-                }
-                Err(e) => out.error = Some(e.to_string()),
-            }
-            poses.push(out);
-            pb.inc(1);
-        }
-        pb.finish_and_clear();
-    }
-    let mut v = Variant {
-        name: name.to_string(),
-        models_dir: dir.display().to_string(),
-        features: feature_kinds(&models),
-        mean_auc: 0.0,
-        mean_seg_error: 0.0,
-        mean_seg_error_raw: 0.0,
-        mean_recall_at_1fppi: 0.0,
-        detect_ms_per_image: detect_ms,
-        objects,
-        pose: poses,
-    };
-    v.set_means();
-    Ok(v)
 }
 
 fn print_variant(v: &Variant) {
@@ -586,8 +259,14 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
             meshes.insert(obj, (mesh, points));
         }
     }
+    let scan = ScanSettings {
+        threshold: args.threshold,
+        max_detections: args.max_detections,
+        max_oracle_gap: args.max_oracle_gap,
+        pose_mask: args.pose_mask,
+    };
     let mut variants = vec![evaluate(
-        "sdhop", models_dir, &bop, &images, args, args.pose, false, &meshes,
+        "sdhop", models_dir, &bop, &images, &scan, args.pose, false, &meshes,
     )?];
     print_variant(&variants[0]);
     if args.transfer {
@@ -596,7 +275,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
             models_dir,
             &bop,
             &images,
-            args,
+            &scan,
             false,
             true,
             &meshes,
@@ -605,7 +284,7 @@ pub(crate) fn run_bop_eval(args: &BopEvalArgs) -> Result<(), Failure> {
         variants.push(v);
     }
     for (name, dir) in &args.compare {
-        let v = evaluate(name, dir, &bop, &images, args, false, false, &meshes)?;
+        let v = evaluate(name, dir, &bop, &images, &scan, false, false, &meshes)?;
         print_variant(&v);
         variants.push(v);
     }

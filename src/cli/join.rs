@@ -1,21 +1,15 @@
 //! `sdhop-train join`: each object's single-pose model joined with the
-//! view components of a model trained apart (views and box-only
-//! photographs), their scores moved by an offset so that a view component
-//! fires where the single-pose one does not. With `--check-folds`, whether
-//! to join an object, at which offset, with which colour-agreement weight
-//! and at which detection threshold is chosen per object by
-//! cross-validation over its box-only photographs, guarded by the
-//! single-pose photographs.
+//! view components of a model trained apart; the route is
+//! [`crate::train::routes::join::join_models`]. This command parses the
+//! flags into its settings, prints the choice and saves the models.
 
 use super::*;
-use crate::eval::detection::ObjectScore;
-use crate::train::ko8::Ko8Data;
-use train::fold_range;
+use crate::train::routes::join::{choice_table, join_models, JoinSettings, Joined};
 
 #[derive(clap::Args)]
 pub(crate) struct JoinArgs {
     /// Folder of the base models (e.g. the shipped single-pose ones).
-    #[arg(long, default_value = "models")]
+    #[arg(long, default_value_os_t = JoinSettings::default().base)]
     pub(crate) base: PathBuf,
     /// Folder of the models whose components are appended (e.g. `train
     /// --sources views,boxes`), matched to the base models by name; base
@@ -25,12 +19,8 @@ pub(crate) struct JoinArgs {
     /// Added to the appended components' scores (negative: they fire
     /// less). One value for every object, or `NAME=VALUE` pairs
     /// (comma-separated) for some.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "0",
-        allow_hyphen_values = true
-    )]
+    /// Default 0.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub(crate) offset: Vec<String>,
     /// Only these objects get the appended components (default: every one
     /// with a model in `--add`).
@@ -54,18 +44,15 @@ pub(crate) struct JoinArgs {
     #[arg(long, value_delimiter = ',', requires = "ko8")]
     pub(crate) check_folds: Vec<PathBuf>,
     /// Offsets `--check-folds` chooses among (besides not joining).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "0,0.25,0.5",
-        allow_hyphen_values = true
-    )]
+    /// Default 0,0.25,0.5.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub(crate) offsets: Vec<f64>,
     /// Colour-agreement weights `--check-folds` chooses among, for each
     /// offset and for not joining (`DetectParams::colour_weight`: the
     /// mean log ratio of the object's learned colours to the image's over
     /// a detection's mask, added to its score).
-    #[arg(long, value_delimiter = ',', default_value = "0,0.25,0.5")]
+    /// Default 0,0.25,0.5.
+    #[arg(long, value_delimiter = ',')]
     pub(crate) colour_weights: Vec<f64>,
     /// Detection thresholds above the base models' that `--check-folds`
     /// then tries for each joined model in its chosen setting, keeping the
@@ -73,15 +60,11 @@ pub(crate) struct JoinArgs {
     /// of the setting's at the base threshold (and whose single-pose
     /// figures pass the guard): fewer locations reach the min-cuts and
     /// fewer detections get masks. Sorted increasing.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "-0.5,-0.25",
-        allow_hyphen_values = true
-    )]
+    /// Default -0.5,-0.25.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub(crate) thresholds: Vec<f64>,
     /// How much held-out figure a higher threshold may cost.
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, default_value_t = JoinSettings::default().threshold_tolerance)]
     pub(crate) threshold_tolerance: f64,
     /// The colour weight of every output model without `--check-folds`
     /// (default: each base model's own).
@@ -89,609 +72,54 @@ pub(crate) struct JoinArgs {
     pub(crate) colour_weight: Option<f64>,
     /// Least gain of a setting's held-out figure over the base model's for
     /// `--check-folds` to choose it.
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = JoinSettings::default().min_gain)]
     pub(crate) min_gain: f64,
     /// Most a joined model may lose on the single-pose photographs (AUC,
     /// cross-object AUC; segmentation and VOC errors may rise as much).
-    #[arg(long, default_value_t = 0.002)]
+    #[arg(long, default_value_t = JoinSettings::default().single_tolerance)]
     pub(crate) single_tolerance: f64,
 }
 
-/// One way to ship an object's model: joined at an offset or not, with a
-/// colour-agreement weight.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-struct Setting {
-    /// `None`: not joined.
-    offset: Option<f64>,
-    /// [`crate::vision::detect::DetectParams::colour_weight`].
-    colour_weight: f64,
-    /// The joined model's detection threshold (`None`: the base model's).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    threshold: Option<f64>,
-}
-
-/// Figures of one setting for one object.
-#[derive(Clone, Debug, serde::Serialize)]
-struct Candidate {
-    setting: Setting,
-    /// Per fold: (AUC, cross-object AUC) on its held-out photographs.
-    folds: Vec<(f64, f64)>,
-    /// Mean over folds of (AUC + cross AUC) / 2.
-    held_out: f64,
-    /// On the single-pose photographs: AUC, cross AUC, refined
-    /// segmentation error, refined VOC error.
-    single: Option<[f64; 4]>,
-    admissible: bool,
-}
-
-/// What `--check-folds` chose for one object.
-struct Choice {
-    name: String,
-    /// `None`: the base model unchanged.
-    setting: Option<Setting>,
-    candidates: Vec<Candidate>,
-}
-
-/// `m` in `setting`, with `add` the components to join (if any).
-fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, Failure> {
-    let mut out = match (setting.offset, add) {
-        (Some(o), Some(a)) => m
-            .joined(a, o)
-            .map_err(|e| Failure::input(format!("{}: {e}", m.meta.name)))?,
-        _ => m.clone(),
-    };
-    out.meta.detection.colour_weight = setting.colour_weight;
-    if let (Some(t), Some(_)) = (setting.threshold, setting.offset) {
-        out.meta.detection.threshold = t;
-    }
-    Ok(out)
-}
-
-/// `base`'s models each in its setting (`None`: unchanged), each with
-/// `add`'s model of its object.
-fn applied_each(
-    base: &[Model],
-    add: &[Model],
-    settings: &[Option<Setting>],
-) -> Result<Vec<Model>, Failure> {
-    base.iter()
-        .zip(settings)
-        .map(|(m, s)| match s {
-            Some(s) => apply(m, add.iter().find(|a| a.meta.name == m.meta.name), *s),
-            None => Ok(m.clone()),
-        })
-        .collect()
-}
-
-/// `base`'s models all in `setting`.
-fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, Failure> {
-    applied_each(base, add, &vec![Some(setting); base.len()])
-}
-
-/// Detections of `models` on `images` scored per object.
-fn evaluate(
-    data: &Ko8Data,
-    images: &[&Sample],
-    models: &[Model],
-    cache: &PyramidCache,
-) -> Result<Vec<ObjectScore>, Failure> {
-    let refs: Vec<&Model> = models.iter().collect();
-    let how = EvalDetect {
-        max_detections: 20,
-        ..EvalDetect::default()
-    };
-    let responses = detect_all(images, &refs, cache, how).map_err(Failure::input)?;
-    Ok(score(data, images, &responses).objects)
-}
-
-fn fill_cache(cache: &PyramidCache, images: &[&Sample], m: &Model) -> Result<(), Failure> {
-    let pb = progress_bar(0, "pyramids");
-    cache
-        .fill(images, &m.meta.pyramid, &m.meta.segmentation, &pb)
-        .map_err(Failure::input)?;
-    pb.finish_and_clear();
-    Ok(())
-}
-
-/// The settings the check compares: for each colour weight asked for (the
-/// base model's own without any), not joining and joining at each offset.
-fn settings_grid(args: &JoinArgs, m0: &Model) -> Vec<Setting> {
-    let mut weights = args.colour_weights.clone();
-    if weights.is_empty() {
-        weights.push(m0.meta.detection.colour_weight);
-    }
-    weights
-        .iter()
-        .flat_map(|&colour_weight| {
-            std::iter::once(None)
-                .chain(args.offsets.iter().map(|&o| Some(o)))
-                .map(move |offset| Setting {
-                    offset,
-                    colour_weight,
-                    threshold: None,
-                })
-        })
-        .collect()
-}
-
-/// One candidate per base model and setting, not yet scored.
-fn blank_candidates(base: &[Model], settings: &[Setting]) -> Vec<Vec<Candidate>> {
-    base.iter()
-        .map(|_| {
-            settings
-                .iter()
-                .map(|&setting| Candidate {
-                    setting,
-                    folds: Vec::new(),
-                    held_out: 0.0,
-                    single: None,
-                    admissible: true,
-                })
-                .collect()
-        })
-        .collect()
-}
-
-/// The setting chosen per object by the folds, with every candidate's
-/// figures.
-fn choose_settings(
-    args: &JoinArgs,
-    base: &[Model],
-    added: &[Model],
-) -> Result<Vec<Choice>, Failure> {
-    let root = args
-        .ko8
-        .as_ref()
-        .ok_or_else(|| Failure::input("--check-folds needs --ko8"))?;
-    if args
-        .offsets
-        .iter()
-        .chain(&args.colour_weights)
-        .any(|o| !o.is_finite())
-        || args.colour_weights.iter().any(|&w| w < 0.0)
-    {
-        return Err(Failure::input(
-            "--offsets and --thresholds must be finite numbers, --colour-weights finite and >= 0",
-        ));
-    }
-    let data = Ko8Data::load(root, &[])
-        .and_then(|d| d.with_multiview(root))
-        .map_err(Failure::input)?;
-    let m0 = base
-        .first()
-        .ok_or_else(|| Failure::input("no base model"))?;
-    let settings = settings_grid(args, m0);
-    let mut cands = blank_candidates(base, &settings);
-    let position =
-        |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
-    let n = args.check_folds.len();
-    let pb = progress_bar(
-        (settings.len() * (n + 1)) as u64,
-        "settings on the folds and single-pose photographs",
-    );
-    let mut folds = Vec::new();
-    for (k, dir) in args.check_folds.iter().enumerate() {
-        let fold = load_model_dir(dir)?;
-        let images: Vec<&Sample> = data
-            .photos
-            .iter()
-            .flat_map(|p| p[fold_range(k, n, p.len())].iter())
-            .collect();
-        pb.println(format!(
-            "fold {k}/{n} ({}): {} held-out box-only photographs",
-            dir.display(),
-            images.len()
-        ));
-        let cache = PyramidCache::default();
-        fill_cache(&cache, &images, m0)?;
-        for (ci, &setting) in settings.iter().enumerate() {
-            let models = applied_all(base, &fold, setting)?;
-            let scores = evaluate(&data, &images, &models, &cache)?;
-            for (mi, m) in base.iter().enumerate() {
-                let s = position(&scores, &m.meta.name).map(|i| &scores[i]);
-                cands[mi][ci]
-                    .folds
-                    .push(s.map_or((0.0, 0.0), |s| (s.auc, s.auc_cross)));
-            }
-            pb.inc(1);
-        }
-        folds.push((fold, images, cache));
-    }
-    // The single-pose guard, with the components the output will carry.
-    let images: Vec<&Sample> = data.images.iter().flatten().collect();
-    pb.println(format!("single-pose guard: {} photographs", images.len()));
-    let cache = PyramidCache::default();
-    fill_cache(&cache, &images, m0)?;
-    for (ci, &setting) in settings.iter().enumerate() {
-        let models = applied_all(base, added, setting)?;
-        let scores = evaluate(&data, &images, &models, &cache)?;
-        for (mi, m) in base.iter().enumerate() {
-            cands[mi][ci].single = position(&scores, &m.meta.name).map(|i| {
-                let s = &scores[i];
-                [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
-            });
-        }
-        pb.inc(1);
-    }
-    pb.finish_and_clear();
-    let mut out = Vec::new();
-    for (m, mut cs) in base.iter().zip(cands) {
-        let has_add = added.iter().any(|a| a.meta.name == m.meta.name);
-        let setting = pick_setting(
-            &mut cs,
-            m.meta.detection.colour_weight,
-            has_add,
-            args.single_tolerance,
-            args.min_gain,
-        );
-        out.push(Choice {
-            name: m.meta.name.clone(),
-            setting,
-            candidates: cs,
-        });
-    }
-    // Higher thresholds for the joined models (fewer locations reach the
-    // min-cuts, fewer masks), each object's chosen setting at each.
-    let mut thresholds: Vec<f64> = args
-        .thresholds
-        .iter()
-        .copied()
-        .filter(|&t| t > m0.meta.detection.threshold)
-        .collect();
-    thresholds.sort_by(f64::total_cmp);
-    if thresholds.is_empty()
-        || out
-            .iter()
-            .all(|c| c.setting.is_none_or(|s| s.offset.is_none()))
-    {
-        return Ok(out);
-    }
-    let pb = progress_bar(
-        (thresholds.len() * (n + 1)) as u64,
-        "thresholds of the joined models",
-    );
-    let at = |t: f64| -> Vec<Option<Setting>> {
-        out.iter()
-            .map(|c| {
-                c.setting.map(|s| Setting {
-                    threshold: s.offset.map(|_| t),
-                    ..s
-                })
-            })
-            .collect()
-    };
-    let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
-    for &t in &thresholds {
-        let chosen = at(t);
-        let mut fold_scores = Vec::new();
-        for (fold, images, cache) in &folds {
-            fold_scores.push(evaluate(
-                &data,
-                images,
-                &applied_each(base, fold, &chosen)?,
-                cache,
-            )?);
-            pb.inc(1);
-        }
-        let single = evaluate(&data, &images, &applied_each(base, added, &chosen)?, &cache)?;
-        pb.inc(1);
-        for (mi, m) in base.iter().enumerate() {
-            let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {
-                continue;
-            };
-            let name = &m.meta.name;
-            let folds_of: Vec<(f64, f64)> = fold_scores
-                .iter()
-                .map(|sc| position(sc, name).map_or((0.0, 0.0), |i| (sc[i].auc, sc[i].auc_cross)))
-                .collect();
-            extra[mi].push(Candidate {
-                setting,
-                held_out: folds_of.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>()
-                    / folds_of.len().max(1) as f64,
-                folds: folds_of,
-                single: position(&single, name).map(|i| {
-                    let s = &single[i];
-                    [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
-                }),
-                admissible: false,
-            });
+impl JoinArgs {
+    /// The route's settings from the flags (an empty list: the default).
+    fn settings(&self) -> JoinSettings {
+        let d = JoinSettings::default();
+        let or = |v: &Vec<f64>, d: Vec<f64>| if v.is_empty() { d } else { v.clone() };
+        JoinSettings {
+            base: self.base.clone(),
+            add: self.add.clone(),
+            offset: if self.offset.is_empty() {
+                d.offset
+            } else {
+                self.offset.clone()
+            },
+            objects: self.objects.clone(),
+            ko8: self.ko8.clone(),
+            check_folds: self.check_folds.clone(),
+            offsets: or(&self.offsets, d.offsets),
+            colour_weights: or(&self.colour_weights, d.colour_weights),
+            thresholds: or(&self.thresholds, d.thresholds),
+            threshold_tolerance: self.threshold_tolerance,
+            colour_weight: self.colour_weight,
+            min_gain: self.min_gain,
+            single_tolerance: self.single_tolerance,
         }
     }
-    pb.finish_and_clear();
-    for (c, more) in out.iter_mut().zip(extra) {
-        let own = base
-            .iter()
-            .find(|m| m.meta.name == c.name)
-            .map_or(0.0, |m| m.meta.detection.colour_weight);
-        let plain = c
-            .candidates
-            .iter()
-            .find(|x| x.setting.offset.is_none() && x.setting.colour_weight == own)
-            .and_then(|x| x.single);
-        let Some(best) = c
-            .setting
-            .and_then(|s| c.candidates.iter().find(|x| x.setting == s))
-        else {
-            continue;
-        };
-        let floor = best.held_out - args.threshold_tolerance;
-        let mut more = more;
-        for x in &mut more {
-            x.admissible = x.held_out >= floor
-                && match (x.single, plain) {
-                    (Some(s), Some(p)) => single_within(&s, &p, args.single_tolerance),
-                    _ => true,
-                };
-        }
-        // The highest admissible threshold (they come in increasing order).
-        if let Some(x) = more.iter().rev().find(|x| x.admissible) {
-            c.setting = Some(x.setting);
-        }
-        c.candidates.extend(more);
-    }
-    Ok(out)
-}
-
-/// Whether single-pose figures `s` are within `tol` of `p`'s: AUC and
-/// cross AUC no lower, segmentation and VOC errors no higher.
-fn single_within(s: &[f64; 4], p: &[f64; 4], tol: f64) -> bool {
-    s[0] >= p[0] - tol && s[1] >= p[1] - tol && s[2] <= p[2] + tol && s[3] <= p[3] + tol
-}
-
-/// The best admissible setting by its held-out figure (mean over the
-/// folds), where it gains at least `min_gain` over the base model as it is
-/// (not joined, its own colour weight `own`); `None`: keep that. A setting
-/// is admissible where its single-pose figures are within `tol` of the
-/// base's (AUC and cross AUC no lower, segmentation and VOC errors no
-/// higher) and, joined, there are components to join (`has_add`). Sets
-/// each candidate's `held_out` and `admissible`.
-fn pick_setting(
-    cs: &mut [Candidate],
-    own: f64,
-    has_add: bool,
-    tol: f64,
-    min_gain: f64,
-) -> Option<Setting> {
-    for c in cs.iter_mut() {
-        c.held_out =
-            c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>() / c.folds.len().max(1) as f64;
-    }
-    let plain = cs
-        .iter()
-        .find(|c| c.setting.offset.is_none() && c.setting.colour_weight == own)
-        .cloned();
-    for c in cs.iter_mut() {
-        let guard = match (c.single, plain.as_ref().and_then(|p| p.single)) {
-            (Some(s), Some(p)) => single_within(&s, &p, tol),
-            _ => true,
-        };
-        c.admissible = guard && (c.setting.offset.is_none() || has_add);
-    }
-    let floor = plain.as_ref().map_or(f64::NEG_INFINITY, |p| p.held_out) + min_gain;
-    cs.iter()
-        .filter(|c| c.admissible)
-        .max_by(|a, b| a.held_out.total_cmp(&b.held_out))
-        .filter(|c| c.held_out >= floor)
-        .map(|c| c.setting)
-}
-
-/// The offset of `name` from `--offset`'s values: `NAME=VALUE` for it,
-/// else a bare value, else 0.
-fn offset_of(values: &[String], name: &str) -> Result<f64, Failure> {
-    let mut bare = None;
-    for v in values {
-        let parse = |t: &str| {
-            t.trim()
-                .parse::<f64>()
-                .ok()
-                .filter(|x| x.is_finite())
-                .ok_or_else(|| Failure::input(format!("--offset: {v:?} is not a number")))
-        };
-        match v.split_once('=') {
-            Some((n, x)) if n.trim() == name => return parse(x),
-            Some(_) => {}
-            None => bare = Some(parse(v)?),
-        }
-    }
-    Ok(bare.unwrap_or(0.0))
 }
 
 pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
-    let base = load_model_dir(&args.base)?;
-    if base.is_empty() {
-        return Err(Failure::input(format!(
-            "--base {}: no *.safetensors models",
-            args.base.display()
-        )));
-    }
-    if let Some(m) = base
-        .iter()
-        .find(|m| m.meta.provenance.get("joined").is_some())
-    {
-        return Err(Failure::input(format!(
-            "--base {}: {} is already a joined model; join the single-pose models (train --sources single)",
-            args.base.display(),
-            m.meta.name
-        )));
-    }
-    let added = load_model_dir(&args.add)?;
-    for o in &args.objects {
-        if !base.iter().any(|m| &m.meta.name == o) {
-            return Err(Failure::input(format!(
-                "--objects: no base model {o:?} in {}",
-                args.base.display()
-            )));
+    let Joined { models, choice } = join_models(&args.settings())?;
+    if let Some(c) = &choice {
+        for line in choice_table(c) {
+            println!("{line}");
         }
     }
-    let choice = if args.check_folds.is_empty() {
-        None
-    } else {
-        let c = choose_settings(args, &base, &added)?;
-        print_choice(&c);
-        Some(c)
-    };
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
-    for m in &base {
-        let name = &m.meta.name;
-        let chosen = args.objects.is_empty() || args.objects.contains(name);
-        let other = added.iter().find(|a| &a.meta.name == name);
-        let setting = match &choice {
-            Some(c) => c
-                .iter()
-                .find(|ch| &ch.name == name)
-                .and_then(|ch| ch.setting),
-            None => Some(Setting {
-                offset: Some(offset_of(&args.offset, name)?),
-                colour_weight: args.colour_weight.unwrap_or(m.meta.detection.colour_weight),
-                threshold: None,
-            }),
-        };
-        let out = match setting.filter(|_| chosen) {
-            Some(setting) => {
-                let mut j = apply(m, other, setting)?;
-                if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
-                    if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
-                        p.insert(
-                            "join_check".into(),
-                            serde_json::to_value(&ch.candidates).map_err(Failure::io)?,
-                        );
-                    }
-                }
-                let joined = match (setting.offset, other) {
-                    (Some(o), Some(a)) => format!(
-                        "+ {} component(s) at offset {o:+.3}, threshold {}",
-                        a.views.len(),
-                        j.meta.detection.threshold
-                    ),
-                    _ => "not joined".into(),
-                };
-                println!(
-                    "{name}: {} component(s) {joined}, colour weight {}",
-                    m.views.len(),
-                    setting.colour_weight
-                );
-                j
-            }
-            None => {
-                println!("{name}: unchanged");
-                m.clone()
-            }
-        };
-        let path = args.out.join(format!("{name}.safetensors"));
-        out.save(&path).map_err(Failure::io)?;
+    for (model, line) in &models {
+        println!("{line}");
+        let path = args.out.join(format!("{}.safetensors", model.meta.name));
+        model.save(&path).map_err(Failure::io)?;
     }
     Ok(())
-}
-
-/// The table of `--check-folds`' figures.
-fn print_choice(choice: &[Choice]) {
-    println!(
-        "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
-    );
-    for ch in choice {
-        for c in &ch.candidates {
-            let folds: Vec<String> = c
-                .folds
-                .iter()
-                .map(|(a, x)| format!("{:.3}", 0.5 * (a + x)))
-                .collect();
-            let single = c.single.map_or("-".into(), |s| {
-                format!("{:.3}/{:.3}/{:.4}/{:.4}", s[0], s[1], s[2], s[3])
-            });
-            let mark = if Some(c.setting) == ch.setting {
-                " <"
-            } else {
-                ""
-            };
-            println!(
-                "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {}{mark}",
-                ch.name,
-                match (c.setting.offset, c.setting.threshold) {
-                    (None, _) => "none".to_string(),
-                    (Some(o), None) => format!("{o:+.2}"),
-                    (Some(o), Some(t)) => format!("{o:+.2} t{t}"),
-                },
-                c.setting.colour_weight,
-                c.held_out,
-                folds.join(" "),
-                if c.admissible { "yes" } else { "no" },
-            );
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn cand(
-        offset: Option<f64>,
-        colour_weight: f64,
-        folds: &[(f64, f64)],
-        single: [f64; 4],
-    ) -> Candidate {
-        Candidate {
-            setting: Setting {
-                offset,
-                colour_weight,
-                threshold: None,
-            },
-            folds: folds.to_vec(),
-            held_out: 0.0,
-            single: Some(single),
-            admissible: false,
-        }
-    }
-
-    const SP: [f64; 4] = [1.0, 1.0, 0.20, 0.10];
-
-    #[test]
-    fn the_best_held_out_setting_wins_within_the_single_pose_guard() {
-        let mut cs = vec![
-            cand(None, 0.0, &[(0.5, 0.5), (0.7, 0.7)], SP),
-            cand(Some(0.0), 0.0, &[(0.7, 0.7), (0.8, 0.8)], SP),
-            // Best held out, but it segments the single-pose photographs worse.
-            cand(
-                Some(0.5),
-                0.0,
-                &[(0.9, 0.9), (0.9, 0.9)],
-                [1.0, 1.0, 0.21, 0.10],
-            ),
-            cand(None, 0.5, &[(0.6, 0.6), (0.7, 0.7)], SP),
-        ];
-        let s = pick_setting(&mut cs, 0.0, true, 0.002, 0.01);
-        assert_eq!(
-            s,
-            Some(Setting {
-                offset: Some(0.0),
-                colour_weight: 0.0,
-                threshold: None
-            })
-        );
-        assert!((cs[1].held_out - 0.75).abs() < 1e-12);
-        assert!(!cs[2].admissible && cs[3].admissible);
-        // Without components to join, only the colour weight can change.
-        let s = pick_setting(&mut cs, 0.0, false, 0.002, 0.01);
-        assert_eq!(
-            s,
-            Some(Setting {
-                offset: None,
-                colour_weight: 0.5,
-                threshold: None
-            })
-        );
-        // A gain below the least one keeps the base model.
-        assert_eq!(pick_setting(&mut cs, 0.0, false, 0.002, 0.1), None);
-    }
-
-    #[test]
-    fn offsets_per_object_or_for_all() {
-        let v: Vec<String> = ["0.25", "cup=-0.5"].iter().map(|s| s.to_string()).collect();
-        assert_eq!(offset_of(&v, "cup").unwrap(), -0.5);
-        assert_eq!(offset_of(&v, "shaker").unwrap(), 0.25);
-        assert_eq!(offset_of(&[], "cup").unwrap(), 0.0);
-        assert!(offset_of(&["cup=x".to_string()], "cup").is_err());
-        assert!(offset_of(&["inf".to_string()], "cup").is_err());
-    }
 }

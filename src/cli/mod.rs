@@ -24,7 +24,7 @@ mod upgrade;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use crate::data::{load_coco, Sample};
+use crate::data::Sample;
 use crate::model::Model;
 use crate::pipeline::{
     detect_image, overlay, DetectOptions, DetectResponse, MaskMode, DEFAULT_MAX_PIXELS,
@@ -34,14 +34,13 @@ use clap::{Parser, Subcommand};
 use crate::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
 use crate::train::ko8::{
     above_threshold, choose_threshold, cross_validate, detect_all, score, selection_key,
-    threshold_sweep, train_objects, EvalDetect, Evaluation, FoldModels, Ko8Data, NegativeSet,
+    threshold_sweep, EvalDetect, Evaluation, FoldModels, Ko8Data,
 };
 
-use crate::train::loss::LossKind;
-use crate::train::{progress_bar, train_model, PyramidCache, TrainParams};
+use crate::train::routes::{add_cv_figures, background_image, image_files, TrainSettings};
+use crate::train::{progress_bar, PyramidCache};
 use crate::vision::cells::FeatureKind;
 use crate::vision::detect::box_iou;
-use crate::vision::energy::PairwiseMode;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
 use crate::vision::refine::PixelRefine;
@@ -130,15 +129,7 @@ pub(crate) enum Command {
     Upgrade(UpgradeArgs),
 }
 
-/// The feature kinds of `models` (`hog`, `cnn` or both, comma-separated),
-/// as every evaluation report names them.
-pub(crate) fn feature_kinds<'a>(models: impl IntoIterator<Item = &'a Model>) -> String {
-    let kinds: std::collections::BTreeSet<&str> = models
-        .into_iter()
-        .map(|m| m.meta.pyramid.features.name())
-        .collect();
-    kinds.into_iter().collect::<Vec<_>>().join(",")
-}
+pub(crate) use crate::eval::feature_kinds;
 
 /// An error with the process exit code it maps to.
 #[derive(Debug)]
@@ -197,20 +188,26 @@ pub(crate) fn read_json(p: &Path) -> Result<serde_json::Value, Failure> {
 
 /// The `*.safetensors` files of a folder, sorted.
 pub(crate) fn model_paths(dir: &Path) -> Result<Vec<PathBuf>, Failure> {
-    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| Failure::io(format!("{}: {e}", dir.display())))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
-        .collect();
-    found.sort();
-    Ok(found)
+    Ok(crate::train::routes::model_paths(dir)?)
 }
 
 pub(crate) fn load_model_dir(dir: &Path) -> Result<Vec<Model>, Failure> {
-    model_paths(dir)?
-        .iter()
-        .map(|p| Model::load(p).map_err(|e| Failure::input(format!("{}: {e}", p.display()))))
-        .collect()
+    Ok(crate::train::routes::load_model_dir(dir)?)
+}
+
+impl From<crate::eval::bop_run::RunError> for Failure {
+    fn from(e: crate::eval::bop_run::RunError) -> Self {
+        Self::input(e.0)
+    }
+}
+
+impl From<crate::train::routes::RouteError> for Failure {
+    fn from(e: crate::train::routes::RouteError) -> Self {
+        match e {
+            crate::train::routes::RouteError::Input(m) => Self::input(m),
+            crate::train::routes::RouteError::Io(m) => Self::io(m),
+        }
+    }
 }
 
 /// Parses the command line and runs the command; the process exit code.

@@ -16,19 +16,6 @@ pub(crate) struct PoseDataArgs {
     pub(crate) out: PathBuf,
 }
 
-/// A background photograph at the benchmark's 640x480.
-pub(crate) fn background_image(path: &Path) -> Result<ColorImage, Failure> {
-    let img = image::open(path)
-        .map_err(|e| Failure::input(format!("{}: {e}", path.display())))?
-        .to_rgb8();
-    let img = if img.dimensions() == (640, 480) {
-        img
-    } else {
-        image::imageops::resize(&img, 640, 480, image::imageops::FilterType::Triangle)
-    };
-    ColorImage::from_rgb8(&img).map_err(Failure::input)
-}
-
 pub(crate) fn run_pose_data(args: &PoseDataArgs) -> Result<(), Failure> {
     use crate::eval::pose::{scene, BenchSettings};
     let (objects, train, _) = args.bg.load()?;

@@ -2,18 +2,12 @@
 //! file), saved as weights files.
 
 use super::*;
-use crate::data::load_image;
-use crate::model::BoxCorrection;
-use crate::train::box_correction::HeldOut;
-use crate::train::components::train_choosing_components;
-use crate::train::ko8::{train_object_sources, Source};
-use crate::train::multiview::{MultiViewParams, Sources};
-use crate::train::views::{AugmentParams, OccluderKinds, View};
-use crate::train::{box_correction, mirror};
-use crate::train::{TrainError, TrainReport};
-use crate::vision::hog::CELL_SIZE;
-use std::collections::HashSet;
-use std::sync::Arc;
+use crate::train::ko8::Source;
+use crate::train::multiview::MultiViewParams;
+use crate::train::routes::coco::{train_coco, CocoRoute};
+use crate::train::routes::ko8::{train_ko8, Ko8Route};
+use crate::train::routes::photos::{COCO_BOX_FOLDS, COCO_BOX_FOLD_ROUNDS, COCO_MIRROR};
+use crate::train::views::{AugmentParams, OccluderKinds};
 
 #[derive(clap::Args)]
 pub(crate) struct TrainArgs {
@@ -129,59 +123,6 @@ pub(crate) struct TrainArgs {
     pub(crate) settings: TrainSettings,
 }
 
-/// Detection threshold of models trained without masked photographs of
-/// the scene (views, box-only photographs): their objects, hidden more in
-/// the photographs than any training crop, score lower (views only, 30
-/// development photographs per object: mean AUC 0.728 at -0.75, 0.760 at
-/// -1.0, the same at -1.25).
-const VIEWS_THRESHOLD: f64 = -1.0;
-
-/// The cells `train --coco` uses unless `--features` (or a `--config`
-/// file's pyramid) says otherwise: the learned ones, which win on the
-/// development photographs of that route (docs/training.md).
-const COCO_FEATURES: FeatureKind = FeatureKind::Cnn;
-
-/// Folds of `train --coco`'s box correction (`--box-folds`): LM-O,
-/// box-only, learned cells: the windows on held-out photographs are 0.82-
-/// 0.85 of the objects' boxes (docs/training.md).
-pub(crate) const COCO_BOX_FOLDS: usize = 2;
-
-/// CCCP rounds of each box-correction fold (`--box-fold-rounds`), which
-/// starts from the full training's imputation of the box-only
-/// photographs: LM-O glue, box-only, learned cells: the folds' trainings
-/// took 515 of 813 s with the full training's two rounds each, 280 of
-/// 585 s with none, the model's AUC the same (docs/training.md).
-pub(crate) const COCO_BOX_FOLD_ROUNDS: usize = 0;
-
-/// Background examples per photograph of `train --coco`
-/// (`--background-regions`): LM-O, box-only, learned cells, the ape 0.509
-/// -> 0.634 AUC with 4 (docs/training.md).
-const COCO_BACKGROUND_REGIONS: usize = 4;
-
-/// Whether `train --coco` mirrors its photographs (`--mirror-photos`):
-/// LM-O box-only, learned cells, without background examples: ape 0.509
-/// -> 0.535, duck 0.486 -> 0.569, at 2.8 times the training time; not
-/// measured beside the background examples, so off by default.
-const COCO_MIRROR: bool = false;
-
-/// Full searches at most when [`crate::train::small_object_scales`]
-/// applies (unless `--max-passes` says otherwise).
-const SMALL_OBJECT_PASSES: usize = 15;
-
-/// Locations per image a mining search reaches ([`BoxRoute::mining`]):
-/// on the LM-O duck (mesh + boxes), where an exact search beat an
-/// example's cached best, it did so among the first 256 locations in 97%
-/// of the first round's searches (later rounds: 24 of 39, and 12 between
-/// 1,024 and 4,096), of about 9,600 reached.
-const MINING_BUDGET: usize = 1024;
-
-/// The median of the boxes' longer sides (pixels).
-fn median_longer(sizes: &[(f64, f64)]) -> f64 {
-    let mut v: Vec<f64> = sizes.iter().map(|&(w, h)| w.max(h)).collect();
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(0.0)
-}
-
 /// `K/N` of `--box-fold`.
 fn parse_box_fold(s: &str) -> Result<(usize, usize), String> {
     let bad = || format!("{s:?}: expected K/N with 0 <= K < N, N >= 2 (e.g. 0/2)");
@@ -196,172 +137,41 @@ fn parse_box_fold(s: &str) -> Result<(usize, usize), String> {
     Ok((k, n))
 }
 
-/// The indices of fold `k` of `n` over `len` items: the k-th of n runs of
-/// consecutive items, as even as they can be.
-pub(crate) fn fold_range(k: usize, n: usize, len: usize) -> std::ops::Range<usize> {
-    (k * len / n)..((k + 1) * len / n)
-}
-
-/// `params` with the threshold of `sources` unless one was given (by
-/// `--threshold`, or a `--config` file that changes it).
-fn params_for(params: &TrainParams, sources: &[Source], flag: bool) -> TrainParams {
-    let mut p = params.clone();
-    let explicit = flag || p.threshold != TrainParams::default().threshold;
-    if !explicit && !sources.contains(&Source::Single) {
-        p.threshold = VIEWS_THRESHOLD;
-    }
-    p
-}
-
 pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
-    // Photographs of your own objects: learned cells unless told (LM-O,
-    // 50 box-only photographs: see docs/training.md, "Learned cells").
-    let route_features = if args.coco.is_some() {
-        COCO_FEATURES
-    } else {
-        FeatureKind::Hog
-    };
-    let (params, neg) = args.settings.params(route_features)?;
     std::fs::create_dir_all(&args.out)
         .map_err(|e| Failure::io(format!("{}: {e}", args.out.display())))?;
-    let cv: Option<serde_json::Value> = match &args.cv_report {
-        Some(p) => Some(
-            serde_json::from_str(
-                &std::fs::read_to_string(p)
-                    .map_err(|e| Failure::io(format!("{}: {e}", p.display())))?,
-            )
-            .map_err(|e| Failure::input(format!("{}: {e}", p.display())))?,
-        ),
+    let cv = match &args.cv_report {
+        Some(p) => Some(read_json(p)?),
         None => None,
     };
     let mv = args.multiview()?;
-    let cache = PyramidCache::default();
-    let trained = if let Some(coco) = &args.coco {
-        let dir = args.images.clone().unwrap_or_default();
-        let extra_negatives = match &args.negatives {
-            Some(d) => image_files(d)?.into_iter().map(Sample::negative).collect(),
-            None => Vec::new(),
-        };
-        let mut out = Vec::new();
-        for cat in &args.category {
-            let loaded = load_coco(coco, &dir, cat).map_err(Failure::input)?;
-            for s in &loaded.skipped {
-                eprintln!("skipped: {s}");
-            }
-            let pb = progress_bar(0, cat);
-            let route = BoxRoute {
-                sources: args
-                    .sources
-                    .clone()
-                    .unwrap_or_else(|| vec![Source::Single, Source::Boxes]),
+    let trained = match (&args.coco, &args.ko8) {
+        (Some(coco), _) => {
+            let route = CocoRoute {
+                coco: coco.clone(),
+                images: args.images.clone().unwrap_or_default(),
+                categories: args.category.clone(),
+                negatives: args.negatives.clone(),
+                sources: args.sources.clone(),
                 mirror_photos: args.mirror_photos,
                 box_folds: args.box_folds,
                 box_fold_rounds: args.box_fold_rounds,
-                box_fold_passes: None,
-                renders: Default::default(),
-                mining: false,
             };
-            let PhotoTraining { model, report, .. } = train_photographs(
-                cat,
-                &loaded.samples,
-                &extra_negatives,
-                &route,
-                &args.settings,
-                &params,
-                &mv,
-                &cache,
-                &pb,
-            )?;
-            pb.finish_and_clear();
-            out.push((model, report));
+            train_coco(&route, &args.settings, &mv)?
         }
-        out
-    } else {
-        let root = args
-            .ko8
-            .as_ref()
-            .ok_or_else(|| Failure::input("--ko8 or --coco is required"))?;
-        // Views and boxes load every object: the others' views are
-        // occluders.
-        let sources = match &args.sources {
-            Some(s) => s.clone(),
-            None if root.join("multiple/train").is_dir() => {
-                vec![Source::Single, Source::Views, Source::Boxes]
-            }
-            None => {
-                eprintln!(
-                    "note: {} has no multi-view part (multiple/): training from the single-pose photographs",
-                    root.display()
-                );
-                vec![Source::Single]
-            }
-        };
-        let multi = sources != [Source::Single];
-        let params = params_for(&params, &sources, args.settings.threshold.is_some());
-        let mut data = if multi {
-            Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root))
-        } else {
-            Ko8Data::load(root, &args.objects)
+        (None, Some(root)) => {
+            let route = Ko8Route {
+                root: root.clone(),
+                objects: args.objects.clone(),
+                sources: args.sources.clone(),
+                box_fold: args.box_fold,
+                boxes_first: args.boxes_first,
+            };
+            train_ko8(&route, &args.settings, &mv)?
         }
-        .map_err(Failure::input)?;
-        for p in &mut data.photos {
-            if let Some((k, n)) = args.box_fold {
-                p.drain(fold_range(k, n, p.len()));
-            }
-            if let Some(n) = args.boxes_first {
-                p.truncate(n);
-            }
-        }
-        for s in &data.skipped {
-            eprintln!("skipped: {s}");
-        }
-        for o in &args.objects {
-            if !data.objects.contains(o) {
-                return Err(Failure::input(format!(
-                    "--objects: no object {o:?} in {} (it has {})",
-                    root.display(),
-                    data.objects.join(", ")
-                )));
-            }
-        }
-        if !multi {
-            train_objects(&data, None, &params, &neg, &cache).map_err(Failure::input)?
-        } else {
-            let mut out = Vec::new();
-            let chosen = (0..data.objects.len())
-                .filter(|&oi| args.objects.is_empty() || args.objects.contains(&data.objects[oi]));
-            for oi in chosen {
-                let pb = progress_bar(0, &data.objects[oi]);
-                let (m, mut r) =
-                    train_object_sources(&data, oi, &sources, &params, &neg, &mv, &cache, &pb)
-                        .map_err(Failure::input)?;
-                pb.finish_and_clear();
-                if let Some(cv) = &r.components_cv {
-                    eprintln!(
-                        "{}: components by {}-fold cross-validation over the views: {} -> {}",
-                        data.objects[oi],
-                        cv.folds,
-                        cv.candidates
-                            .iter()
-                            .map(|(k, auc, _)| format!("{k}: AUC {auc:.3}"))
-                            .collect::<Vec<_>>()
-                            .join(", "),
-                        cv.chosen
-                    );
-                }
-                let last = r.rounds.pop().unwrap_or_default();
-                out.push((m, last));
-            }
-            out
-        }
+        (None, None) => return Err(Failure::input("--ko8 or --coco is required")),
     };
     for (mut model, report) in trained {
-        if let Some(obj) = model.meta.provenance.as_object_mut() {
-            obj.insert(
-                "negatives".into(),
-                serde_json::to_value(&neg).map_err(Failure::io)?,
-            );
-        }
         if let Some(cv) = &cv {
             add_cv_figures(&mut model, cv);
         }
@@ -390,33 +200,6 @@ pub(crate) fn run_train(args: &TrainArgs) -> Result<(), Failure> {
         );
     }
     Ok(())
-}
-
-/// Stores a cross-validation report's figures for the model's object in its
-/// provenance.
-pub(crate) fn add_cv_figures(model: &mut Model, cv: &serde_json::Value) {
-    let name = model.meta.name.clone();
-    let figures = cv["evaluation"]["objects"]
-        .as_array()
-        .and_then(|a| a.iter().find(|o| o["object"] == name.as_str()))
-        .cloned();
-    if let Some(obj) = model.meta.provenance.as_object_mut() {
-        obj.insert(
-            "cross_validation".into(),
-            serde_json::json!({
-                "folds": cv["folds"],
-                "c": cv["c"],
-                "params": cv["params"],
-                "threshold": cv["threshold"],
-                "figures": figures,
-                "mean": cv["evaluation"]["mean"],
-            }),
-        );
-    }
-    // The cross-validated threshold becomes the model's default.
-    if let Some(t) = cv["threshold"].as_f64() {
-        model.meta.detection.threshold = t;
-    }
 }
 
 impl TrainArgs {
@@ -467,510 +250,15 @@ fn numbers<const N: usize>(o: &str, flag: &str, expected: &str) -> Result<[f64; 
         .map_err(|_| Failure::input(format!("{flag} {o:?}: expected {expected}")))
 }
 
-/// How [`train_photographs`] trains a COCO category: its sources, and the
-/// `train --coco` options that shape it.
-pub(crate) struct BoxRoute {
-    pub(crate) sources: Vec<Source>,
-    pub(crate) mirror_photos: bool,
-    pub(crate) box_folds: usize,
-    pub(crate) box_fold_rounds: usize,
-    /// Most passes of each box-correction fold's training (and its
-    /// mining); `None`: as many as the full training's.
-    pub(crate) box_fold_passes: Option<usize>,
-    /// Images the caller drew (renders over the photographs): they give
-    /// no background examples, stay in every box-correction fold's
-    /// training and are never held out.
-    pub(crate) renders: Arc<HashSet<PathBuf>>,
-    /// Every full search mines with a budget ([`TrainParams::mining_passes`],
-    /// [`MINING_BUDGET`]) where the flags leave it open; the first that
-    /// finds nothing ends the training, or is checked by an exact one with
-    /// `--exact-check` ([`TrainParams::exact_check`]).
-    pub(crate) mining: bool,
-}
-
-/// What [`train_photographs`] made.
-pub(crate) struct PhotoTraining {
-    pub(crate) model: Model,
-    pub(crate) report: TrainReport,
-    /// The samples as the last round trained on them (box-only ones with
-    /// their imputed visibility and components; mirrored ones after their
-    /// originals).
-    pub(crate) trained: Vec<Sample>,
-    /// What the box correction's fold models found on their held-out
-    /// photographs (`None` without folds).
-    pub(crate) held_out: Option<HeldOut>,
-}
-
-/// One category of photographs as `train --coco` trains it: the
-/// small-object scales where the flags leave them open, background
-/// examples, optional mirrored photographs, the structural SVM with latent
-/// boxes, then the box correction by cross-validation. `params` are the
-/// settings' (`settings` tells which the user set).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn train_photographs(
-    cat: &str,
-    loaded: &[Sample],
-    extra_negatives: &[Sample],
-    route: &BoxRoute,
-    st: &TrainSettings,
-    params: &TrainParams,
-    mv: &MultiViewParams,
-    cache: &PyramidCache,
-    pb: &indicatif::ProgressBar,
-) -> Result<PhotoTraining, Failure> {
-    let started = std::time::Instant::now();
-    let sources = &route.sources;
-    let params = photo_params(cat, loaded, route, st, params);
-    let samples = if route.mirror_photos {
-        pb.set_message(format!("{cat}: mirrored photographs"));
-        let views = sources.contains(&Source::Views);
-        mirror::with_mirrors(
-            loaded,
-            |a| !views || !a.mask_known,
-            cache,
-            &params.pyramid,
-            &params.segmentation,
-            pb,
-        )
-        .map_err(Failure::input)?
-    } else {
-        loaded.to_vec()
-    };
-    let (mut model, report, imputed) = train_coco(
-        cat,
-        samples.clone(),
-        extra_negatives,
-        sources,
-        cache,
-        &params,
-        mv,
-        pb,
-    )
-    .map_err(Failure::input)?;
-    let trained = with_imputed(&samples, imputed, sources);
-    let mut correction_seconds = None;
-    let mut held_out = None;
-    if route.box_folds >= 2 {
-        let t = std::time::Instant::now();
-        pb.set_message(format!("{cat}: box correction"));
-        let (fitted, found) =
-            fold_check(cat, &trained, extra_negatives, route, &params, mv, cache)?;
-        if let (Some(auc), Some(p)) = (found.auc(), model.meta.provenance.as_object_mut()) {
-            p.insert("held_out_auc".into(), serde_json::json!(auc));
-        }
-        held_out = Some(found);
-        model.meta.box_correction = fitted;
-        correction_seconds = Some(t.elapsed().as_secs_f64());
-    }
-    let seconds = started.elapsed().as_secs_f64();
-    match correction_seconds {
-        Some(c) => eprintln!(
-            "{cat}: trained in {seconds:.0} s ({c:.0} s of it the box correction's {}-fold trainings)",
-            route.box_folds
-        ),
-        None => eprintln!("{cat}: trained in {seconds:.0} s"),
-    }
-    if let Some(p) = model.meta.provenance.as_object_mut() {
-        p.insert(
-            "mirror_photos".into(),
-            serde_json::Value::Bool(route.mirror_photos),
-        );
-    }
-    Ok(PhotoTraining {
-        model,
-        report,
-        trained,
-        held_out,
-    })
-}
-
-/// The training settings of [`train_photographs`] for `loaded`: the
-/// route's sources, background examples (none from the route's renders),
-/// and the small-object scales where the flags leave them open.
-pub(crate) fn photo_params(
-    cat: &str,
-    loaded: &[Sample],
-    route: &BoxRoute,
-    st: &TrainSettings,
-    params: &TrainParams,
-) -> TrainParams {
-    let mut params = params_for(params, &route.sources, st.threshold.is_some());
-    if !route.renders.is_empty() {
-        params.renders = route.renders.clone();
-    }
-    if st.background_regions.is_none() && st.config.is_none() {
-        params.background_regions = COCO_BACKGROUND_REGIONS;
-    }
-    let scales_set = st.config.is_some()
-        || st.template_scale.is_some()
-        || st.template.is_some()
-        || st.levels_per_octave.is_some()
-        || st.min_scale.is_some()
-        || st.max_scale.is_some();
-    if !scales_set {
-        // The photographs' boxes set the scales, not the renders': a
-        // render of another aspect (the LM-O glue end-on, its longer side
-        // at the smallest box's) stretched the pyramid from 2.06 to 3.77
-        // and the glue's training past 37 minutes; a render no level fits
-        // is left out of training as any such box is.
-        let sizes: Vec<(f64, f64)> = loaded
-            .iter()
-            .filter(|s| !route.renders.contains(&s.image))
-            .filter_map(|s| s.annotation.as_ref())
-            .map(|a| (a.bbox.2, a.bbox.3))
-            .collect();
-        if let Some(mut p) = crate::train::small_object_scales(&sizes, &params) {
-            // Few, small photographs: training to convergence pays
-            // (LM-O duck, 45 photographs with true masks: 5 passes
-            // AUC 0.256, segmentation error 0.688; converged after
-            // 13, 0.271 and 0.426; 93 s against 155 s).
-            if st.max_passes.is_none() {
-                p.max_passes = SMALL_OBJECT_PASSES;
-            }
-            eprintln!(
-                "{cat}: small objects: template scale {:.2} (about {:.0} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
-                p.template_scale,
-                p.template_scale * median_longer(&sizes) / CELL_SIZE as f64,
-                p.pyramid.min_scale,
-                p.pyramid.max_scale,
-                p.pyramid.levels_per_octave,
-                p.max_passes
-            );
-            params = p;
-        }
-    }
-    if route.mining {
-        if st.mining_passes.is_none() {
-            params.mining_passes = params.max_passes;
-        }
-        if st.mining_budget.is_none() {
-            params.mining_budget = MINING_BUDGET;
-        }
-        params.exact_check = st.exact_check;
-    }
-    params
-}
-
-/// The box correction's `route.box_folds`-fold cross-validation over the
-/// photographs of `trained` (each box with the visibility and component
-/// a full training imputed to it; the route's renders are never held
-/// out): the correction fitted to the held-out detections, and what the
-/// fold models found on their held-out photographs (its AUC is the
-/// route's check of a training). `params` as [`photo_params`] gives them.
-pub(crate) fn fold_check(
-    cat: &str,
-    trained: &[Sample],
-    extra_negatives: &[Sample],
-    route: &BoxRoute,
-    params: &TrainParams,
-    mv: &MultiViewParams,
-    cache: &PyramidCache,
-) -> Result<(Option<BoxCorrection>, HeldOut), Failure> {
-    // The folds start from the full training's imputation of the
-    // box-only photographs.
-    let fold_mv = MultiViewParams {
-        latent_rounds: route.box_fold_rounds,
-        boxes_imputed: true,
-        ..mv.clone()
-    };
-    let params = &fold_params(params, route);
-    let (fitted, found) =
-        box_correction::fit(trained, route.box_folds, &route.renders, cache, |subset| {
-            let hidden = indicatif::ProgressBar::hidden();
-            train_coco(
-                cat,
-                subset,
-                extra_negatives,
-                &route.sources,
-                cache,
-                params,
-                &fold_mv,
-                &hidden,
-            )
-            .map(|(m, _, _)| m)
-        })
-        .map_err(Failure::input)?;
-    match &fitted {
-        Some(c) => eprintln!(
-            "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
-            route.box_folds, c.samples, c.dx, c.dy, c.sw, c.sh
-        ),
-        None => eprintln!(
-            "{cat}: no box correction ({} held-out detections, {} needed)",
-            found.offsets.len(),
-            box_correction::MIN_SAMPLES
-        ),
-    }
-    if let Some(auc) = found.auc() {
-        eprintln!(
-            "{cat}: held out by the folds: AUC {auc:.3} on {} photographs ({} objects)",
-            found.photos(),
-            found.objects()
-        );
-    }
-    Ok((fitted, found))
-}
-
-/// The settings of each box-correction fold's training: `params` with
-/// their passes (and mining passes) at most `route.box_fold_passes`.
-fn fold_params(params: &TrainParams, route: &BoxRoute) -> TrainParams {
-    let mut p = params.clone();
-    if let Some(most) = route.box_fold_passes {
-        p.max_passes = p.max_passes.min(most);
-        p.mining_passes = p.mining_passes.min(most);
-    }
-    p
-}
-
-/// Whether `train_coco` trains `s` as a box-only photograph (latent
-/// visibility).
-fn is_box_only(s: &Sample, sources: &[Source]) -> bool {
-    sources.contains(&Source::Boxes) && s.annotation.as_ref().is_some_and(|a| !a.mask_known)
-}
-
-/// `samples` with their box-only photographs replaced, in order, by
-/// `imputed` (what `train_coco` returned for them); as they are where the
-/// counts differ.
-fn with_imputed(samples: &[Sample], imputed: Vec<Sample>, sources: &[Source]) -> Vec<Sample> {
-    let boxes = samples.iter().filter(|s| is_box_only(s, sources)).count();
-    if boxes != imputed.len() {
-        return samples.to_vec();
-    }
-    let mut imputed = imputed.into_iter();
-    samples
-        .iter()
-        .map(|s| match is_box_only(s, sources) {
-            true => imputed.next().unwrap_or_else(|| s.clone()),
-            false => s.clone(),
-        })
-        .collect()
-}
-
-/// One COCO category from its samples and `sources`: masked annotations
-/// are views (`views`) or masked photographs (`single`, the default
-/// without `views`), box-only ones train with latent visibility (`boxes`).
-/// Also returns the box-only photographs as the last round trained on
-/// them (imputed visibility and components).
-#[allow(clippy::too_many_arguments)]
-fn train_coco(
-    cat: &str,
-    samples: Vec<Sample>,
-    extra_negatives: &[Sample],
-    sources: &[Source],
-    cache: &PyramidCache,
-    params: &TrainParams,
-    mv: &MultiViewParams,
-    pb: &indicatif::ProgressBar,
-) -> Result<(Model, TrainReport, Vec<Sample>), TrainError> {
-    let as_views = sources.contains(&Source::Views);
-    let use_boxes = sources.contains(&Source::Boxes);
-    let mut fixed: Vec<Sample> = Vec::new();
-    let mut views = Vec::new();
-    let mut boxes = Vec::new();
-    for s in samples {
-        match &s.annotation {
-            None => fixed.push(s),
-            Some(a) if !a.mask_known => {
-                if use_boxes {
-                    boxes.push(s);
-                }
-            }
-            Some(_) if as_views => views.push(View::from_sample(&s)?),
-            Some(_) => fixed.push(s),
-        }
-    }
-    fixed.extend(extra_negatives.iter().cloned());
-    let backgrounds: Vec<Arc<ColorImage>> = if as_views {
-        fixed
-            .iter()
-            .filter(|s| s.annotation.is_none())
-            .take(20)
-            .map(|s| load_image(&s.image).map(Arc::new))
-            .collect::<Result<_, _>>()?
-    } else {
-        Vec::new()
-    };
-    if views.is_empty() && boxes.is_empty() {
-        let refs: Vec<&Sample> = fixed.iter().collect();
-        return train_model(cat, &refs, cache, params, pb).map(|(m, r)| (m, r, Vec::new()));
-    }
-    let src = Sources {
-        fixed: fixed.iter().collect(),
-        views,
-        occluders: Vec::new(),
-        backgrounds,
-        boxes,
-    };
-    let (m, mut r) = train_choosing_components(cat, src, cache, params, mv, pb)?;
-    eprintln!("{cat}: {}", round_times(&r.rounds));
-    let imputed = std::mem::take(&mut r.imputed_boxes);
-    Ok((m, r.rounds.pop().unwrap_or_default(), imputed))
-}
-
-/// Where each training round's time went: its passes and cutting-plane
-/// iterations, and its seconds in full searches, cached searches and QPs.
-fn round_times(rounds: &[TrainReport]) -> String {
-    let each: Vec<String> = rounds
-        .iter()
-        .map(|r| {
-            format!(
-                "{} passes, {} iterations, {:.0} s (full {:.0}, cached {:.0}, qp {:.0})",
-                r.passes, r.iterations, r.seconds, r.full_seconds, r.cached_seconds, r.qp_seconds
-            )
-        })
-        .collect();
-    format!("training rounds: {}", each.join("; "))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::Annotation;
-    use crate::vision::mask::Mask;
 
     #[test]
-    fn box_folds_cover_every_photograph_once() {
-        for len in [0, 1, 7, 30, 31] {
-            for n in 2..5 {
-                let mut seen = vec![0; len];
-                for k in 0..n {
-                    for i in fold_range(k, n, len) {
-                        seen[i] += 1;
-                    }
-                }
-                assert!(seen.iter().all(|&c| c == 1), "{len} {n}");
-            }
-        }
-        assert_eq!(fold_range(0, 2, 30), 0..15);
-        assert_eq!(fold_range(1, 2, 30), 15..30);
+    fn box_folds_parse_as_k_of_n() {
         assert_eq!(parse_box_fold("1/2"), Ok((1, 2)));
         for bad in ["2/2", "0/1", "x/2", "1", "-1/2"] {
             assert!(parse_box_fold(bad).is_err(), "{bad}");
         }
-    }
-
-    fn sample(id: &str, mask_known: Option<bool>, viewpoint: usize) -> Sample {
-        Sample {
-            image: PathBuf::from(format!("{id}.png")),
-            id: id.into(),
-            annotation: mask_known.map(|mask_known| Annotation {
-                label: "glue".into(),
-                bbox: (0.0, 0.0, 4.0, 4.0),
-                visible: Mask::new(4, 4),
-                viewpoint,
-                mask_known,
-            }),
-        }
-    }
-
-    #[test]
-    fn folds_get_the_imputed_box_photographs_in_order() {
-        let samples = vec![
-            sample("a", Some(false), 0),
-            sample("neg", None, 0),
-            sample("masked", Some(true), 0),
-            sample("b", Some(false), 0),
-        ];
-        let imputed = vec![sample("a", Some(false), 1), sample("b", Some(false), 2)];
-        let boxes = [Source::Boxes];
-        let out = with_imputed(&samples, imputed.clone(), &boxes);
-        let views: Vec<(String, Option<usize>)> = out
-            .iter()
-            .map(|s| (s.id.clone(), s.annotation.as_ref().map(|a| a.viewpoint)))
-            .collect();
-        assert_eq!(
-            views,
-            vec![
-                ("a".into(), Some(1)),
-                ("neg".into(), None),
-                ("masked".into(), Some(0)),
-                ("b".into(), Some(2)),
-            ]
-        );
-        // Without box-only training, or where the counts differ, as given.
-        let same = |out: Vec<Sample>| {
-            out.iter()
-                .all(|s| s.annotation.as_ref().is_none_or(|a| a.viewpoint == 0))
-        };
-        assert!(same(with_imputed(
-            &samples,
-            imputed.clone(),
-            &[Source::Single]
-        )));
-        assert!(same(with_imputed(&samples, imputed[..1].to_vec(), &boxes)));
-    }
-
-    #[test]
-    fn the_photographs_boxes_set_the_scales_not_the_renders() {
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            settings: TrainSettings,
-        }
-        let settings = <Cli as clap::Parser>::parse_from(["t"]).settings;
-        let boxed = |id: &str, w: f64, h: f64| {
-            let mut s = sample(id, Some(false), 0);
-            if let Some(a) = s.annotation.as_mut() {
-                a.bbox = (0.0, 0.0, w, h);
-            }
-            s
-        };
-        // Small photographed boxes, and thin renders at their longer side
-        // (an object seen end-on).
-        let photos: Vec<Sample> = (0..5)
-            .map(|i| boxed(&format!("p{i}"), 40.0, 36.0))
-            .collect();
-        let renders: Vec<Sample> = (0..5).map(|i| boxed(&format!("r{i}"), 30.0, 8.0)).collect();
-        let all: Vec<Sample> = photos.iter().chain(&renders).cloned().collect();
-        let route = |renders: &[Sample]| BoxRoute {
-            sources: vec![Source::Single, Source::Boxes],
-            mirror_photos: false,
-            box_folds: 0,
-            box_fold_rounds: 0,
-            box_fold_passes: None,
-            renders: Arc::new(renders.iter().map(|s| s.image.clone()).collect()),
-            mining: true,
-        };
-        let base = TrainParams::default();
-        let with = photo_params("glue", &all, &route(&renders), &settings, &base);
-        let alone = photo_params("glue", &photos, &route(&[]), &settings, &base);
-        assert_eq!(with.pyramid.max_scale, alone.pyramid.max_scale);
-        assert_eq!(with.template_scale, alone.template_scale);
-        // Counted as photographs, the renders stretch the pyramid.
-        let counted = photo_params("glue", &all, &route(&[]), &settings, &base);
-        assert!(
-            counted.pyramid.max_scale > alone.pyramid.max_scale,
-            "{} {}",
-            counted.pyramid.max_scale,
-            alone.pyramid.max_scale
-        );
-        // Mining where the flags leave it open.
-        assert_eq!(with.mining_budget, MINING_BUDGET);
-    }
-
-    #[test]
-    fn the_folds_train_at_most_their_passes() {
-        let route = |most: Option<usize>| BoxRoute {
-            sources: vec![Source::Single, Source::Boxes],
-            mirror_photos: false,
-            box_folds: 2,
-            box_fold_rounds: 0,
-            box_fold_passes: most,
-            renders: Default::default(),
-            mining: true,
-        };
-        let full = TrainParams {
-            max_passes: 15,
-            mining_passes: 15,
-            ..TrainParams::default()
-        };
-        let capped = fold_params(&full, &route(Some(8)));
-        assert_eq!((capped.max_passes, capped.mining_passes), (8, 8));
-        // Never more than the full training's.
-        let loose = fold_params(&full, &route(Some(30)));
-        assert_eq!((loose.max_passes, loose.mining_passes), (15, 15));
-        let same = fold_params(&full, &route(None));
-        assert_eq!((same.max_passes, same.mining_passes), (15, 15));
-        assert_eq!(same.template_scale, full.template_scale);
     }
 }

@@ -7,6 +7,7 @@
 
 pub mod bop_detect;
 pub mod bop_pose;
+pub mod bop_run;
 pub mod detection;
 pub mod plot;
 pub mod pose;
@@ -59,4 +60,14 @@ pub fn mean_errors(errors: impl Iterator<Item = [f64; 6]>, n: usize) -> [f64; 6]
         }
     }
     mean
+}
+
+/// The feature kinds of `models` (`hog`, `cnn` or both, comma-separated),
+/// as every evaluation report names them.
+pub fn feature_kinds<'a>(models: impl IntoIterator<Item = &'a crate::model::Model>) -> String {
+    let kinds: std::collections::BTreeSet<&str> = models
+        .into_iter()
+        .map(|m| m.meta.pyramid.features.name())
+        .collect();
+    kinds.into_iter().collect::<Vec<_>>().join(",")
 }

@@ -29,6 +29,7 @@ pub mod mesh;
 pub mod mirror;
 pub mod multiview;
 pub mod qp;
+pub mod routes;
 mod search;
 pub mod views;
 

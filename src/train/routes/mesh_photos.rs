@@ -2,16 +2,32 @@
 //! renders as views (`--from-views`) and renders with the user's box
 //! photographs (`--photos`), with the checks that choose between them.
 
-use super::*;
+use super::mesh::{BoxXywh, MeshSettings, Object, PhotoVisibility};
+use super::photos::{
+    fold_check, photo_params, train_photographs, BoxRoute, PhotoTraining, COCO_BOX_FOLDS,
+    COCO_BOX_FOLD_ROUNDS,
+};
+use super::RouteError;
+use crate::data::Sample;
+use crate::model::Model;
+use crate::pose::mesh::Mesh;
+use crate::train::mesh::{representative_rotations, without_boxes, ROTATIONS_PER_COMPONENT};
+use crate::train::multiview::{train_sources, MultiViewParams, Sources};
+use crate::train::views::{OccluderKinds, View};
+use crate::train::{PyramidCache, TrainParams, TrainReport};
+use crate::vision::image::ColorImage;
+use nalgebra::Vector3;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// A model of one object trained through the views route or `--photos`
 /// route `boxes`, and each component's mean viewing direction and
 /// representative (start) rotations.
-pub(crate) struct RouteModel {
-    pub(crate) model: Model,
-    pub(crate) report: TrainReport,
-    pub(crate) directions: Vec<[f64; 3]>,
-    pub(crate) rotations: Vec<Vec<[f64; 4]>>,
+pub struct RouteModel {
+    pub model: Model,
+    pub report: TrainReport,
+    pub directions: Vec<[f64; 3]>,
+    pub rotations: Vec<Vec<[f64; 4]>>,
 }
 
 /// `--from-views`: the clean `renders` (with their `poses`) become views
@@ -19,22 +35,22 @@ pub(crate) struct RouteModel {
 /// direction is the mean of its views' directions (object towards camera,
 /// mesh frame).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn train_from_views(
+pub fn train_from_views(
     object: &Object,
     renders: &[Sample],
     poses: &[crate::pose::Pose],
     negatives: &[Sample],
     backgrounds: &[ColorImage],
-    args: &MeshArgs,
+    args: &MeshSettings,
     cache: &PyramidCache,
     params: &TrainParams,
     pb: &indicatif::ProgressBar,
-) -> Result<RouteModel, Failure> {
+) -> Result<RouteModel, RouteError> {
     let views: Vec<View> = renders
         .iter()
         .map(View::from_sample)
         .collect::<Result<_, _>>()
-        .map_err(Failure::input)?;
+        .map_err(RouteError::input)?;
     let mut mv = MultiViewParams {
         components: args.components,
         ..MultiViewParams::default()
@@ -51,7 +67,7 @@ pub(crate) fn train_from_views(
         smooth: 1.0 - args.patch_occluders,
     };
     mv.augment.seed = args.render_seed;
-    mv.validate().map_err(Failure::input)?;
+    mv.validate().map_err(RouteError::input)?;
     let scenes: Vec<Arc<ColorImage>> = backgrounds
         .iter()
         .take(BACKDROP_SCENES)
@@ -66,7 +82,7 @@ pub(crate) fn train_from_views(
         boxes: Vec::new(),
     };
     let (model, mut report) =
-        train_sources(&object.name, src, cache, params, &mv, pb).map_err(Failure::input)?;
+        train_sources(&object.name, src, cache, params, &mv, pb).map_err(RouteError::input)?;
     // Each render's component, by its id.
     let index: std::collections::HashMap<&str, usize> = renders
         .iter()
@@ -92,36 +108,36 @@ pub(crate) fn train_from_views(
 }
 
 /// Background photographs that views are set on (`--from-views`).
-pub(crate) const BACKDROP_SCENES: usize = 20;
+pub const BACKDROP_SCENES: usize = 20;
 
 /// `--photos`: the box-only photographs as training samples.
-pub(crate) struct PhotoSamples {
-    pub(crate) file: PathBuf,
+pub struct PhotoSamples {
+    pub file: PathBuf,
     /// One box of the object each, its visibility and component latent
     /// (to begin with: the whole box, component 0).
-    pub(crate) boxes: Vec<Sample>,
+    pub boxes: Vec<Sample>,
     /// Photographs without the object (nor an ignored box of it).
-    pub(crate) negatives: Vec<Sample>,
+    pub negatives: Vec<Sample>,
     /// Photographs left out, and why.
-    pub(crate) skipped: Vec<String>,
+    pub skipped: Vec<String>,
     /// Every photograph and the boxes of the object in it (ignored ones
     /// too): the scenes route `boxes` draws the renders over.
-    pub(crate) scenes: Vec<(PathBuf, Vec<BoxXywh>)>,
+    pub scenes: Vec<(PathBuf, Vec<BoxXywh>)>,
 }
 
 /// Longest side of a scene the renders are drawn over (larger photographs
 /// are shrunk to it).
-pub(crate) const SCENE_SIDE: usize = 640;
+pub const SCENE_SIDE: usize = 640;
 
 impl PhotoSamples {
     /// The photographs with the object taken out (see
     /// [`crate::train::mesh::without_boxes`]), at most [`SCENE_SIDE`]
     /// pixels on their longer side.
-    pub(crate) fn scenes(&self) -> Result<Vec<ColorImage>, Failure> {
+    pub fn scenes(&self) -> Result<Vec<ColorImage>, RouteError> {
         self.scenes
             .iter()
             .map(|(path, boxes)| {
-                let img = crate::data::load_image(path).map_err(Failure::input)?;
+                let img = crate::data::load_image(path).map_err(RouteError::input)?;
                 let out = without_boxes(&img, boxes);
                 let longer = out.width().max(out.height());
                 if longer <= SCENE_SIDE {
@@ -132,7 +148,7 @@ impl PhotoSamples {
                     ((out.width() as f64 * f).round() as usize).max(1),
                     ((out.height() as f64 * f).round() as usize).max(1),
                 );
-                out.resize_area(w, h).map_err(Failure::input)
+                out.resize_area(w, h).map_err(RouteError::input)
             })
             .collect()
     }
@@ -143,38 +159,37 @@ impl PhotoSamples {
 /// LM-O, 8 instead of 15: the renders' folds 276 s instead of 435 (glue),
 /// 254 instead of 486 (ape), every object's check keeping the same side
 /// (docs/training.md, "The folds' passes capped").
-pub(crate) const CHECK_FOLD_PASSES: usize = 8;
+pub const CHECK_FOLD_PASSES: usize = 8;
 
 /// Paired bootstrap draws of the held-out photographs that compare the
 /// models with and without the renders.
-pub(crate) const CHECK_RESAMPLES: usize = 2000;
+pub const CHECK_RESAMPLES: usize = 2000;
 
 /// Share of those draws in which the model with the renders must find
 /// more (a higher held-out AUC) to be kept: a one-sided test at 10%, so
 /// that a gain within the chance of which photographs were held out keeps
 /// the photographs alone (the box-only route's own model).
-pub(crate) const RENDERS_CONFIDENCE: f64 = 0.9;
+pub const RENDERS_CONFIDENCE: f64 = 0.9;
 
 /// `--photos`, route `boxes`: the renders (drawn over the photographs)
 /// become box-labelled photographs beside the user's, and the whole set
 /// trains as `train --coco` trains box-only photographs
-/// ([`super::train::train_photographs`]). A component's direction and
+/// ([`super::photos::train_photographs`]). A component's direction and
 /// start rotations are those of the renders imputed to it (of all renders
 /// where none was).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn train_with_photo_boxes(
+pub fn train_with_photo_boxes(
     name: &str,
     photos: &PhotoSamples,
     renders: &[Sample],
     poses: &[crate::pose::Pose],
     mesh: &Mesh,
     negatives: &[Sample],
-    args: &MeshArgs,
+    args: &MeshSettings,
     cache: &PyramidCache,
     params: &TrainParams,
     pb: &indicatif::ProgressBar,
-) -> Result<RouteModel, Failure> {
-    use super::train::{fold_check, photo_params, train_photographs, BoxRoute};
+) -> Result<RouteModel, RouteError> {
     let as_boxes: Vec<Sample> = renders.iter().map(as_box_photograph).collect();
     let samples: Vec<Sample> = photos
         .boxes
@@ -189,8 +204,8 @@ pub(crate) fn train_with_photo_boxes(
             crate::train::ko8::Source::Boxes,
         ],
         mirror_photos: false,
-        box_folds: super::train::COCO_BOX_FOLDS,
-        box_fold_rounds: super::train::COCO_BOX_FOLD_ROUNDS,
+        box_folds: COCO_BOX_FOLDS,
+        box_fold_rounds: COCO_BOX_FOLD_ROUNDS,
         box_fold_passes: Some(args.fold_passes),
         // The renders' backgrounds are the photographs themselves: they
         // give no background examples, and the folds hold out photographs
@@ -303,7 +318,7 @@ pub(crate) fn train_with_photo_boxes(
             alone
         }
     };
-    let super::train::PhotoTraining {
+    let PhotoTraining {
         mut model,
         report,
         trained,
@@ -370,7 +385,7 @@ pub(crate) fn train_with_photo_boxes(
 /// mesh frame) and representative start rotations, from the render
 /// `poses` assigned to it (`assign`; `usize::MAX` or beyond `k`: none); a
 /// component without a render gets those of all renders.
-pub(crate) fn component_viewpoints(
+pub fn component_viewpoints(
     mesh: &Mesh,
     poses: &[crate::pose::Pose],
     assign: &[usize],
@@ -410,7 +425,7 @@ pub(crate) fn component_viewpoints(
 
 /// The least and greatest longer side of the boxes of `samples` (at least
 /// [`MIN_RENDER_SIDE`] px); `None` without a box.
-pub(crate) fn box_size_range(samples: &[Sample]) -> Option<[f64; 2]> {
+pub fn box_size_range(samples: &[Sample]) -> Option<[f64; 2]> {
     let sides: Vec<f64> = samples
         .iter()
         .filter_map(|s| s.annotation.as_ref())
@@ -424,11 +439,11 @@ pub(crate) fn box_size_range(samples: &[Sample]) -> Option<[f64; 2]> {
 
 /// Smallest longer side of the object in a render drawn at the
 /// photographs' sizes, pixels.
-pub(crate) const MIN_RENDER_SIDE: f64 = 16.0;
+pub const MIN_RENDER_SIDE: f64 = 16.0;
 
 /// A render as a box-labelled photograph: its box, its visibility and
 /// component left to training.
-pub(crate) fn as_box_photograph(render: &Sample) -> Sample {
+pub fn as_box_photograph(render: &Sample) -> Sample {
     let mut s = render.clone();
     if let Some(a) = s.annotation.as_mut() {
         a.visible = crate::data::box_mask(a.bbox, a.visible.width, a.visible.height);
@@ -442,8 +457,8 @@ pub(crate) fn as_box_photograph(render: &Sample) -> Sample {
 /// [`crate::data::load_box_photos`]). A photograph with two boxes of the
 /// object, or only an ignored one, is left out (one sample holds one box,
 /// and either would make a negative of an instance), named on stderr.
-pub(crate) fn photo_samples(file: &Path, name: &str) -> Result<PhotoSamples, Failure> {
-    let loaded = crate::data::load_box_photos(file, name).map_err(Failure::input)?;
+pub fn photo_samples(file: &Path, name: &str) -> Result<PhotoSamples, RouteError> {
+    let loaded = crate::data::load_box_photos(file, name).map_err(RouteError::input)?;
     let mut out = PhotoSamples {
         file: file.to_path_buf(),
         boxes: Vec::new(),
@@ -493,7 +508,7 @@ pub(crate) fn photo_samples(file: &Path, name: &str) -> Result<PhotoSamples, Fai
         out.skipped.len()
     );
     if out.boxes.is_empty() {
-        return Err(Failure::input(format!(
+        return Err(RouteError::input(format!(
             "--photos {}: no photograph with exactly one box of {name}",
             file.display()
         )));

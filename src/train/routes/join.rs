@@ -1,0 +1,660 @@
+//! Joining each object's single-pose model with the view components of
+//! a model trained apart (views and box-only photographs), their scores
+//! moved by an offset so that a view component fires where the
+//! single-pose one does not (`sdhop-train join`). With `check_folds`,
+//! whether to join an object, at which offset, with which colour-agreement
+//! weight and at which detection threshold is chosen per object by
+//! cross-validation over its box-only photographs, guarded by the
+//! single-pose photographs.
+
+use super::photos::fold_range;
+use super::{load_model_dir, RouteError};
+use crate::data::Sample;
+use crate::eval::detection::ObjectScore;
+use crate::model::Model;
+use crate::train::ko8::{detect_all, score, EvalDetect, Ko8Data};
+use crate::train::{progress_bar, PyramidCache};
+use std::path::PathBuf;
+
+/// What to join and how; see `sdhop-train join --help` for each field.
+#[derive(Clone, Debug)]
+pub struct JoinSettings {
+    pub base: PathBuf,
+    pub add: PathBuf,
+    pub offset: Vec<String>,
+    pub objects: Vec<String>,
+    pub ko8: Option<PathBuf>,
+    pub check_folds: Vec<PathBuf>,
+    pub offsets: Vec<f64>,
+    pub colour_weights: Vec<f64>,
+    pub thresholds: Vec<f64>,
+    pub threshold_tolerance: f64,
+    pub colour_weight: Option<f64>,
+    pub min_gain: f64,
+    pub single_tolerance: f64,
+}
+
+impl Default for JoinSettings {
+    fn default() -> Self {
+        Self {
+            base: PathBuf::from("models"),
+            add: PathBuf::new(),
+            offset: vec!["0".into()],
+            objects: Vec::new(),
+            ko8: None,
+            check_folds: Vec::new(),
+            offsets: vec![0.0, 0.25, 0.5],
+            colour_weights: vec![0.0, 0.25, 0.5],
+            thresholds: vec![-0.5, -0.25],
+            threshold_tolerance: 0.005,
+            colour_weight: None,
+            min_gain: 0.01,
+            single_tolerance: 0.002,
+        }
+    }
+}
+
+/// What [`join_models`] made.
+pub struct Joined {
+    /// Every base model, joined or not, with a line saying which.
+    pub models: Vec<(Model, String)>,
+    /// With `check_folds`: each object's candidates and choice.
+    pub choice: Option<Vec<Choice>>,
+}
+
+/// One way to ship an object's model: joined at an offset or not, with a
+/// colour-agreement weight.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Setting {
+    /// `None`: not joined.
+    pub offset: Option<f64>,
+    /// [`crate::vision::detect::DetectParams::colour_weight`].
+    pub colour_weight: f64,
+    /// The joined model's detection threshold (`None`: the base model's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub threshold: Option<f64>,
+}
+
+/// Figures of one setting for one object.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Candidate {
+    pub setting: Setting,
+    /// Per fold: (AUC, cross-object AUC) on its held-out photographs.
+    pub folds: Vec<(f64, f64)>,
+    /// Mean over folds of (AUC + cross AUC) / 2.
+    pub held_out: f64,
+    /// On the single-pose photographs: AUC, cross AUC, refined
+    /// segmentation error, refined VOC error.
+    pub single: Option<[f64; 4]>,
+    pub admissible: bool,
+}
+
+/// What `--check-folds` chose for one object.
+pub struct Choice {
+    pub name: String,
+    /// `None`: the base model unchanged.
+    pub setting: Option<Setting>,
+    pub candidates: Vec<Candidate>,
+}
+
+/// `m` in `setting`, with `add` the components to join (if any).
+fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, RouteError> {
+    let mut out = match (setting.offset, add) {
+        (Some(o), Some(a)) => m
+            .joined(a, o)
+            .map_err(|e| RouteError::input(format!("{}: {e}", m.meta.name)))?,
+        _ => m.clone(),
+    };
+    out.meta.detection.colour_weight = setting.colour_weight;
+    if let (Some(t), Some(_)) = (setting.threshold, setting.offset) {
+        out.meta.detection.threshold = t;
+    }
+    Ok(out)
+}
+
+/// `base`'s models each in its setting (`None`: unchanged), each with
+/// `add`'s model of its object.
+fn applied_each(
+    base: &[Model],
+    add: &[Model],
+    settings: &[Option<Setting>],
+) -> Result<Vec<Model>, RouteError> {
+    base.iter()
+        .zip(settings)
+        .map(|(m, s)| match s {
+            Some(s) => apply(m, add.iter().find(|a| a.meta.name == m.meta.name), *s),
+            None => Ok(m.clone()),
+        })
+        .collect()
+}
+
+/// `base`'s models all in `setting`.
+fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, RouteError> {
+    applied_each(base, add, &vec![Some(setting); base.len()])
+}
+
+/// Detections of `models` on `images` scored per object.
+fn evaluate(
+    data: &Ko8Data,
+    images: &[&Sample],
+    models: &[Model],
+    cache: &PyramidCache,
+) -> Result<Vec<ObjectScore>, RouteError> {
+    let refs: Vec<&Model> = models.iter().collect();
+    let how = EvalDetect {
+        max_detections: 20,
+        ..EvalDetect::default()
+    };
+    let responses = detect_all(images, &refs, cache, how).map_err(RouteError::input)?;
+    Ok(score(data, images, &responses).objects)
+}
+
+fn fill_cache(cache: &PyramidCache, images: &[&Sample], m: &Model) -> Result<(), RouteError> {
+    let pb = progress_bar(0, "pyramids");
+    cache
+        .fill(images, &m.meta.pyramid, &m.meta.segmentation, &pb)
+        .map_err(RouteError::input)?;
+    pb.finish_and_clear();
+    Ok(())
+}
+
+/// The settings the check compares: for each colour weight asked for (the
+/// base model's own without any), not joining and joining at each offset.
+fn settings_grid(args: &JoinSettings, m0: &Model) -> Vec<Setting> {
+    let mut weights = args.colour_weights.clone();
+    if weights.is_empty() {
+        weights.push(m0.meta.detection.colour_weight);
+    }
+    weights
+        .iter()
+        .flat_map(|&colour_weight| {
+            std::iter::once(None)
+                .chain(args.offsets.iter().map(|&o| Some(o)))
+                .map(move |offset| Setting {
+                    offset,
+                    colour_weight,
+                    threshold: None,
+                })
+        })
+        .collect()
+}
+
+/// One candidate per base model and setting, not yet scored.
+fn blank_candidates(base: &[Model], settings: &[Setting]) -> Vec<Vec<Candidate>> {
+    base.iter()
+        .map(|_| {
+            settings
+                .iter()
+                .map(|&setting| Candidate {
+                    setting,
+                    folds: Vec::new(),
+                    held_out: 0.0,
+                    single: None,
+                    admissible: true,
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The setting chosen per object by the folds, with every candidate's
+/// figures.
+fn choose_settings(
+    args: &JoinSettings,
+    base: &[Model],
+    added: &[Model],
+) -> Result<Vec<Choice>, RouteError> {
+    let root = args
+        .ko8
+        .as_ref()
+        .ok_or_else(|| RouteError::input("--check-folds needs --ko8"))?;
+    if args
+        .offsets
+        .iter()
+        .chain(&args.colour_weights)
+        .any(|o| !o.is_finite())
+        || args.colour_weights.iter().any(|&w| w < 0.0)
+    {
+        return Err(RouteError::input(
+            "--offsets and --thresholds must be finite numbers, --colour-weights finite and >= 0",
+        ));
+    }
+    let data = Ko8Data::load(root, &[])
+        .and_then(|d| d.with_multiview(root))
+        .map_err(RouteError::input)?;
+    let m0 = base
+        .first()
+        .ok_or_else(|| RouteError::input("no base model"))?;
+    let settings = settings_grid(args, m0);
+    let mut cands = blank_candidates(base, &settings);
+    let position =
+        |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
+    let n = args.check_folds.len();
+    let pb = progress_bar(
+        (settings.len() * (n + 1)) as u64,
+        "settings on the folds and single-pose photographs",
+    );
+    let mut folds = Vec::new();
+    for (k, dir) in args.check_folds.iter().enumerate() {
+        let fold = load_model_dir(dir)?;
+        let images: Vec<&Sample> = data
+            .photos
+            .iter()
+            .flat_map(|p| p[fold_range(k, n, p.len())].iter())
+            .collect();
+        pb.println(format!(
+            "fold {k}/{n} ({}): {} held-out box-only photographs",
+            dir.display(),
+            images.len()
+        ));
+        let cache = PyramidCache::default();
+        fill_cache(&cache, &images, m0)?;
+        for (ci, &setting) in settings.iter().enumerate() {
+            let models = applied_all(base, &fold, setting)?;
+            let scores = evaluate(&data, &images, &models, &cache)?;
+            for (mi, m) in base.iter().enumerate() {
+                let s = position(&scores, &m.meta.name).map(|i| &scores[i]);
+                cands[mi][ci]
+                    .folds
+                    .push(s.map_or((0.0, 0.0), |s| (s.auc, s.auc_cross)));
+            }
+            pb.inc(1);
+        }
+        folds.push((fold, images, cache));
+    }
+    // The single-pose guard, with the components the output will carry.
+    let images: Vec<&Sample> = data.images.iter().flatten().collect();
+    pb.println(format!("single-pose guard: {} photographs", images.len()));
+    let cache = PyramidCache::default();
+    fill_cache(&cache, &images, m0)?;
+    for (ci, &setting) in settings.iter().enumerate() {
+        let models = applied_all(base, added, setting)?;
+        let scores = evaluate(&data, &images, &models, &cache)?;
+        for (mi, m) in base.iter().enumerate() {
+            cands[mi][ci].single = position(&scores, &m.meta.name).map(|i| {
+                let s = &scores[i];
+                [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
+            });
+        }
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let mut out = Vec::new();
+    for (m, mut cs) in base.iter().zip(cands) {
+        let has_add = added.iter().any(|a| a.meta.name == m.meta.name);
+        let setting = pick_setting(
+            &mut cs,
+            m.meta.detection.colour_weight,
+            has_add,
+            args.single_tolerance,
+            args.min_gain,
+        );
+        out.push(Choice {
+            name: m.meta.name.clone(),
+            setting,
+            candidates: cs,
+        });
+    }
+    // Higher thresholds for the joined models (fewer locations reach the
+    // min-cuts, fewer masks), each object's chosen setting at each.
+    let mut thresholds: Vec<f64> = args
+        .thresholds
+        .iter()
+        .copied()
+        .filter(|&t| t > m0.meta.detection.threshold)
+        .collect();
+    thresholds.sort_by(f64::total_cmp);
+    if thresholds.is_empty()
+        || out
+            .iter()
+            .all(|c| c.setting.is_none_or(|s| s.offset.is_none()))
+    {
+        return Ok(out);
+    }
+    let pb = progress_bar(
+        (thresholds.len() * (n + 1)) as u64,
+        "thresholds of the joined models",
+    );
+    let at = |t: f64| -> Vec<Option<Setting>> {
+        out.iter()
+            .map(|c| {
+                c.setting.map(|s| Setting {
+                    threshold: s.offset.map(|_| t),
+                    ..s
+                })
+            })
+            .collect()
+    };
+    let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
+    for &t in &thresholds {
+        let chosen = at(t);
+        let mut fold_scores = Vec::new();
+        for (fold, images, cache) in &folds {
+            fold_scores.push(evaluate(
+                &data,
+                images,
+                &applied_each(base, fold, &chosen)?,
+                cache,
+            )?);
+            pb.inc(1);
+        }
+        let single = evaluate(&data, &images, &applied_each(base, added, &chosen)?, &cache)?;
+        pb.inc(1);
+        for (mi, m) in base.iter().enumerate() {
+            let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {
+                continue;
+            };
+            let name = &m.meta.name;
+            let folds_of: Vec<(f64, f64)> = fold_scores
+                .iter()
+                .map(|sc| position(sc, name).map_or((0.0, 0.0), |i| (sc[i].auc, sc[i].auc_cross)))
+                .collect();
+            extra[mi].push(Candidate {
+                setting,
+                held_out: folds_of.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>()
+                    / folds_of.len().max(1) as f64,
+                folds: folds_of,
+                single: position(&single, name).map(|i| {
+                    let s = &single[i];
+                    [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
+                }),
+                admissible: false,
+            });
+        }
+    }
+    pb.finish_and_clear();
+    for (c, more) in out.iter_mut().zip(extra) {
+        let own = base
+            .iter()
+            .find(|m| m.meta.name == c.name)
+            .map_or(0.0, |m| m.meta.detection.colour_weight);
+        let plain = c
+            .candidates
+            .iter()
+            .find(|x| x.setting.offset.is_none() && x.setting.colour_weight == own)
+            .and_then(|x| x.single);
+        let Some(best) = c
+            .setting
+            .and_then(|s| c.candidates.iter().find(|x| x.setting == s))
+        else {
+            continue;
+        };
+        let floor = best.held_out - args.threshold_tolerance;
+        let mut more = more;
+        for x in &mut more {
+            x.admissible = x.held_out >= floor
+                && match (x.single, plain) {
+                    (Some(s), Some(p)) => single_within(&s, &p, args.single_tolerance),
+                    _ => true,
+                };
+        }
+        // The highest admissible threshold (they come in increasing order).
+        if let Some(x) = more.iter().rev().find(|x| x.admissible) {
+            c.setting = Some(x.setting);
+        }
+        c.candidates.extend(more);
+    }
+    Ok(out)
+}
+
+/// Whether single-pose figures `s` are within `tol` of `p`'s: AUC and
+/// cross AUC no lower, segmentation and VOC errors no higher.
+fn single_within(s: &[f64; 4], p: &[f64; 4], tol: f64) -> bool {
+    s[0] >= p[0] - tol && s[1] >= p[1] - tol && s[2] <= p[2] + tol && s[3] <= p[3] + tol
+}
+
+/// The best admissible setting by its held-out figure (mean over the
+/// folds), where it gains at least `min_gain` over the base model as it is
+/// (not joined, its own colour weight `own`); `None`: keep that. A setting
+/// is admissible where its single-pose figures are within `tol` of the
+/// base's (AUC and cross AUC no lower, segmentation and VOC errors no
+/// higher) and, joined, there are components to join (`has_add`). Sets
+/// each candidate's `held_out` and `admissible`.
+fn pick_setting(
+    cs: &mut [Candidate],
+    own: f64,
+    has_add: bool,
+    tol: f64,
+    min_gain: f64,
+) -> Option<Setting> {
+    for c in cs.iter_mut() {
+        c.held_out =
+            c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>() / c.folds.len().max(1) as f64;
+    }
+    let plain = cs
+        .iter()
+        .find(|c| c.setting.offset.is_none() && c.setting.colour_weight == own)
+        .cloned();
+    for c in cs.iter_mut() {
+        let guard = match (c.single, plain.as_ref().and_then(|p| p.single)) {
+            (Some(s), Some(p)) => single_within(&s, &p, tol),
+            _ => true,
+        };
+        c.admissible = guard && (c.setting.offset.is_none() || has_add);
+    }
+    let floor = plain.as_ref().map_or(f64::NEG_INFINITY, |p| p.held_out) + min_gain;
+    cs.iter()
+        .filter(|c| c.admissible)
+        .max_by(|a, b| a.held_out.total_cmp(&b.held_out))
+        .filter(|c| c.held_out >= floor)
+        .map(|c| c.setting)
+}
+
+/// The offset of `name` from `--offset`'s values: `NAME=VALUE` for it,
+/// else a bare value, else 0.
+fn offset_of(values: &[String], name: &str) -> Result<f64, RouteError> {
+    let mut bare = None;
+    for v in values {
+        let parse = |t: &str| {
+            t.trim()
+                .parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| RouteError::input(format!("--offset: {v:?} is not a number")))
+        };
+        match v.split_once('=') {
+            Some((n, x)) if n.trim() == name => return parse(x),
+            Some(_) => {}
+            None => bare = Some(parse(v)?),
+        }
+    }
+    Ok(bare.unwrap_or(0.0))
+}
+
+/// Joins each base model with the added model of its object as the
+/// settings say (or as `check_folds` chooses): every base model, joined
+/// or not, with a line saying what became of it, and the choice's figures.
+pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
+    let base = load_model_dir(&args.base)?;
+    if base.is_empty() {
+        return Err(RouteError::input(format!(
+            "--base {}: no *.safetensors models",
+            args.base.display()
+        )));
+    }
+    if let Some(m) = base
+        .iter()
+        .find(|m| m.meta.provenance.get("joined").is_some())
+    {
+        return Err(RouteError::input(format!(
+            "--base {}: {} is already a joined model; join the single-pose models (train --sources single)",
+            args.base.display(),
+            m.meta.name
+        )));
+    }
+    let added = load_model_dir(&args.add)?;
+    for o in &args.objects {
+        if !base.iter().any(|m| &m.meta.name == o) {
+            return Err(RouteError::input(format!(
+                "--objects: no base model {o:?} in {}",
+                args.base.display()
+            )));
+        }
+    }
+    let choice = if args.check_folds.is_empty() {
+        None
+    } else {
+        let c = choose_settings(args, &base, &added)?;
+        Some(c)
+    };
+    let mut models = Vec::new();
+    for m in &base {
+        let name = &m.meta.name;
+        let chosen = args.objects.is_empty() || args.objects.contains(name);
+        let other = added.iter().find(|a| &a.meta.name == name);
+        let setting = match &choice {
+            Some(c) => c
+                .iter()
+                .find(|ch| &ch.name == name)
+                .and_then(|ch| ch.setting),
+            None => Some(Setting {
+                offset: Some(offset_of(&args.offset, name)?),
+                colour_weight: args.colour_weight.unwrap_or(m.meta.detection.colour_weight),
+                threshold: None,
+            }),
+        };
+        let out = match setting.filter(|_| chosen) {
+            Some(setting) => {
+                let mut j = apply(m, other, setting)?;
+                if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
+                    if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
+                        p.insert(
+                            "join_check".into(),
+                            serde_json::to_value(&ch.candidates).map_err(RouteError::io)?,
+                        );
+                    }
+                }
+                let joined = match (setting.offset, other) {
+                    (Some(o), Some(a)) => format!(
+                        "+ {} component(s) at offset {o:+.3}, threshold {}",
+                        a.views.len(),
+                        j.meta.detection.threshold
+                    ),
+                    _ => "not joined".into(),
+                };
+                let line = format!(
+                    "{name}: {} component(s) {joined}, colour weight {}",
+                    m.views.len(),
+                    setting.colour_weight
+                );
+                (j, line)
+            }
+            None => (m.clone(), format!("{name}: unchanged")),
+        };
+        models.push(out);
+    }
+    Ok(Joined { models, choice })
+}
+
+/// The table of `--check-folds`' figures, a line each.
+pub fn choice_table(choice: &[Choice]) -> Vec<String> {
+    let mut lines = vec![format!(
+        "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
+    )];
+    for ch in choice {
+        for c in &ch.candidates {
+            let folds: Vec<String> = c
+                .folds
+                .iter()
+                .map(|(a, x)| format!("{:.3}", 0.5 * (a + x)))
+                .collect();
+            let single = c.single.map_or("-".into(), |s| {
+                format!("{:.3}/{:.3}/{:.4}/{:.4}", s[0], s[1], s[2], s[3])
+            });
+            let mark = if Some(c.setting) == ch.setting {
+                " <"
+            } else {
+                ""
+            };
+            lines.push(format!(
+                "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {}{mark}",
+                ch.name,
+                match (c.setting.offset, c.setting.threshold) {
+                    (None, _) => "none".to_string(),
+                    (Some(o), None) => format!("{o:+.2}"),
+                    (Some(o), Some(t)) => format!("{o:+.2} t{t}"),
+                },
+                c.setting.colour_weight,
+                c.held_out,
+                folds.join(" "),
+                if c.admissible { "yes" } else { "no" },
+            ));
+        }
+    }
+    lines
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cand(
+        offset: Option<f64>,
+        colour_weight: f64,
+        folds: &[(f64, f64)],
+        single: [f64; 4],
+    ) -> Candidate {
+        Candidate {
+            setting: Setting {
+                offset,
+                colour_weight,
+                threshold: None,
+            },
+            folds: folds.to_vec(),
+            held_out: 0.0,
+            single: Some(single),
+            admissible: false,
+        }
+    }
+
+    const SP: [f64; 4] = [1.0, 1.0, 0.20, 0.10];
+
+    #[test]
+    fn the_best_held_out_setting_wins_within_the_single_pose_guard() {
+        let mut cs = vec![
+            cand(None, 0.0, &[(0.5, 0.5), (0.7, 0.7)], SP),
+            cand(Some(0.0), 0.0, &[(0.7, 0.7), (0.8, 0.8)], SP),
+            // Best held out, but it segments the single-pose photographs worse.
+            cand(
+                Some(0.5),
+                0.0,
+                &[(0.9, 0.9), (0.9, 0.9)],
+                [1.0, 1.0, 0.21, 0.10],
+            ),
+            cand(None, 0.5, &[(0.6, 0.6), (0.7, 0.7)], SP),
+        ];
+        let s = pick_setting(&mut cs, 0.0, true, 0.002, 0.01);
+        assert_eq!(
+            s,
+            Some(Setting {
+                offset: Some(0.0),
+                colour_weight: 0.0,
+                threshold: None
+            })
+        );
+        assert!((cs[1].held_out - 0.75).abs() < 1e-12);
+        assert!(!cs[2].admissible && cs[3].admissible);
+        // Without components to join, only the colour weight can change.
+        let s = pick_setting(&mut cs, 0.0, false, 0.002, 0.01);
+        assert_eq!(
+            s,
+            Some(Setting {
+                offset: None,
+                colour_weight: 0.5,
+                threshold: None
+            })
+        );
+        // A gain below the least one keeps the base model.
+        assert_eq!(pick_setting(&mut cs, 0.0, false, 0.002, 0.1), None);
+    }
+
+    #[test]
+    fn offsets_per_object_or_for_all() {
+        let v: Vec<String> = ["0.25", "cup=-0.5"].iter().map(|s| s.to_string()).collect();
+        assert_eq!(offset_of(&v, "cup").unwrap(), -0.5);
+        assert_eq!(offset_of(&v, "shaker").unwrap(), 0.25);
+        assert_eq!(offset_of(&[], "cup").unwrap(), 0.0);
+        assert!(offset_of(&["cup=x".to_string()], "cup").is_err());
+        assert!(offset_of(&["inf".to_string()], "cup").is_err());
+    }
+}

@@ -1,0 +1,129 @@
+//! `train --ko8`: one model per CMU_KO8 object from its single-pose
+//! photographs (masks), its multi-view part's clean views (augmented with
+//! occluders, grouped into components) and box-only photographs, or any
+//! of them.
+
+use super::photos::{fold_range, params_for};
+use super::{record_negatives, RouteError, TrainSettings};
+use crate::model::Model;
+use crate::train::ko8::{train_object_sources, train_objects, Ko8Data, Source};
+use crate::train::multiview::MultiViewParams;
+use crate::train::{progress_bar, PyramidCache, TrainReport};
+use crate::vision::cells::FeatureKind;
+use std::path::PathBuf;
+
+/// The cells of the CMU_KO8 routes unless the settings name others: HOG,
+/// which the shipped models use (learned cells find slightly more on the
+/// cross-validation folds at eight times the scan's cost).
+pub const KO8_FEATURES: FeatureKind = FeatureKind::Hog;
+
+/// Which CMU_KO8 objects and photographs train.
+#[derive(Clone, Debug, Default)]
+pub struct Ko8Route {
+    /// CMU_KO8 root (with single/ and negative/, and multiple/ for the
+    /// views and box-only photographs).
+    pub root: PathBuf,
+    /// Objects to train (empty: all eight).
+    pub objects: Vec<String>,
+    /// Training sources; `None`: [`Ko8Route::sources`]'s default.
+    pub sources: Option<Vec<Source>>,
+    /// Leave out fold `K` of `N` of each object's box-only photographs.
+    pub box_fold: Option<(usize, usize)>,
+    /// Only the first N box-only photographs of each object.
+    pub boxes_first: Option<usize>,
+}
+
+impl Ko8Route {
+    /// The sources given, or every one where the multi-view part is
+    /// there (`single,views,boxes`), else `single`.
+    pub fn sources(&self) -> Vec<Source> {
+        match &self.sources {
+            Some(s) => s.clone(),
+            None if self.root.join("multiple/train").is_dir() => {
+                vec![Source::Single, Source::Views, Source::Boxes]
+            }
+            None => {
+                eprintln!(
+                    "note: {} has no multi-view part (multiple/): training from the single-pose photographs",
+                    self.root.display()
+                );
+                vec![Source::Single]
+            }
+        }
+    }
+}
+
+/// Trains the route's objects: each model with the last training round's
+/// report, its negatives recorded in its provenance.
+pub fn train_ko8(
+    route: &Ko8Route,
+    settings: &TrainSettings,
+    mv: &MultiViewParams,
+) -> Result<Vec<(Model, TrainReport)>, RouteError> {
+    let (params, neg) = settings.params(KO8_FEATURES)?;
+    let cache = PyramidCache::default();
+    let root = &route.root;
+    // Views and boxes load every object: the others' views are occluders.
+    let sources = route.sources();
+    let multi = sources != [Source::Single];
+    let params = params_for(&params, &sources, settings.threshold.is_some());
+    let mut data = if multi {
+        Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root))
+    } else {
+        Ko8Data::load(root, &route.objects)
+    }
+    .map_err(RouteError::input)?;
+    for p in &mut data.photos {
+        if let Some((k, n)) = route.box_fold {
+            p.drain(fold_range(k, n, p.len()));
+        }
+        if let Some(n) = route.boxes_first {
+            p.truncate(n);
+        }
+    }
+    for s in &data.skipped {
+        eprintln!("skipped: {s}");
+    }
+    for o in &route.objects {
+        if !data.objects.contains(o) {
+            return Err(RouteError::input(format!(
+                "--objects: no object {o:?} in {} (it has {})",
+                root.display(),
+                data.objects.join(", ")
+            )));
+        }
+    }
+    let mut out = Vec::new();
+    if !multi {
+        out = train_objects(&data, None, &params, &neg, &cache).map_err(RouteError::input)?;
+    } else {
+        let chosen = (0..data.objects.len())
+            .filter(|&oi| route.objects.is_empty() || route.objects.contains(&data.objects[oi]));
+        for oi in chosen {
+            let pb = progress_bar(0, &data.objects[oi]);
+            let (m, mut r) =
+                train_object_sources(&data, oi, &sources, &params, &neg, mv, &cache, &pb)
+                    .map_err(RouteError::input)?;
+            pb.finish_and_clear();
+            if let Some(cv) = &r.components_cv {
+                eprintln!(
+                    "{}: components by {}-fold cross-validation over the views: {} -> {}",
+                    data.objects[oi],
+                    cv.folds,
+                    cv.candidates
+                        .iter()
+                        .map(|(k, auc, _)| format!("{k}: AUC {auc:.3}"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    cv.chosen
+                );
+            }
+            let last = r.rounds.pop().unwrap_or_default();
+            out.push((m, last));
+        }
+    }
+    for (m, _) in &mut out {
+        record_negatives(m, &neg)?;
+    }
+    Ok(out)
+}

@@ -1,0 +1,287 @@
+//! The training settings every route shares, as the user gave them: a
+//! `--config` JSON file of [`TrainParams`], then each flag over it. A
+//! field left `None` is the route's to decide (its feature kind, its
+//! scales, its passes), which is why the routes take these settings and
+//! not the resolved parameters alone.
+
+use super::RouteError;
+use crate::train::ko8::NegativeSet;
+use crate::train::loss::LossKind;
+use crate::train::TrainParams;
+use crate::vision::cells::FeatureKind;
+use crate::vision::energy::PairwiseMode;
+use std::path::PathBuf;
+
+/// Images of each other CMU_KO8 object used as negatives (`--other-negatives`).
+pub const OTHER_NEGATIVES: usize = 10;
+
+/// Negative scenes used (`--negative-scenes`).
+pub const NEGATIVE_SCENES: usize = 100;
+
+/// Every training setting; flags override the `--config` JSON file.
+#[derive(clap::Args, Clone, Debug)]
+pub struct TrainSettings {
+    /// JSON file with any of the training settings (see `TrainParams` in
+    /// the docs: c, k, template_scale, template, pyramid, segmentation,
+    /// max_truncation, epsilon, max_passes, max_inner, init_locations,
+    /// mining_passes, mining_budget, cache_size, positive_share, loss, seg_weight, hop,
+    /// pairwise, occlusion, pair_mode, seed, background_regions, threshold).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Regularisation constant C.
+    #[arg(long)]
+    pub c: Option<f64>,
+    /// Standard clique size K of the higher-order potentials.
+    #[arg(long)]
+    pub k: Option<usize>,
+    /// Template size as a fraction of the median training box.
+    #[arg(long)]
+    pub template_scale: Option<f64>,
+    /// Template size in cells, ROWSxCOLS (overrides --template-scale).
+    #[arg(long, value_parser = parse_template)]
+    pub template: Option<[usize; 2]>,
+    /// What a cell's vector is: `hog` (Felzenszwalb's HOG) or `cnn` (the
+    /// pretrained EfficientNet-Lite0 backbone's cells, built in; see
+    /// docs/training.md, "Learned cells"). Default: `cnn` for `train
+    /// --coco`, `hog` for the CMU_KO8 routes and `mesh` (what won on the
+    /// development data of each).
+    #[arg(long, value_parser = FeatureKind::parse)]
+    pub features: Option<FeatureKind>,
+    /// Pyramid levels per octave.
+    #[arg(long)]
+    pub levels_per_octave: Option<u32>,
+    /// Smallest pyramid scale.
+    #[arg(long)]
+    pub min_scale: Option<f32>,
+    /// Largest pyramid scale (above 1: upsampled levels for small objects).
+    #[arg(long)]
+    pub max_scale: Option<f32>,
+    /// Felzenszwalb-Huttenlocher k (segment size preference).
+    #[arg(long)]
+    pub seg_k: Option<f32>,
+    /// Stopping tolerance of the cutting-plane algorithm.
+    #[arg(long)]
+    pub epsilon: Option<f64>,
+    /// Full searches over every location, at most.
+    #[arg(long)]
+    pub max_passes: Option<usize>,
+    /// Iterations over cached locations per full search, at most.
+    #[arg(long)]
+    pub max_inner: Option<usize>,
+    /// Locations per image, in order of their bound, that a hard-example
+    /// mining search reaches (default 300; `mesh --photos`: 1024).
+    #[arg(long)]
+    pub mining_budget: Option<usize>,
+    /// First full searches that mine hard examples with a budget instead of
+    /// being exact; a mining search that finds nothing is followed by an
+    /// exact one, which decides convergence (default 0: every full search
+    /// is exact; `mesh --photos`: every pass mines).
+    #[arg(long)]
+    pub mining_passes: Option<usize>,
+    /// `mesh --photos`: check a mining search that finds nothing by an
+    /// exact one before the training ends (slower; by default the mining
+    /// search decides there).
+    #[arg(long)]
+    pub exact_check: bool,
+    /// Most locations cached per image between full searches.
+    #[arg(long)]
+    pub cache_size: Option<usize>,
+    /// Random seed (initial locations).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Each positive photograph also trains as this many negative examples,
+    /// one per region of a grid over it, away from its instances (its own
+    /// clutter as hard negatives; 0: none). See docs/training.md.
+    #[arg(long)]
+    pub background_regions: Option<usize>,
+    /// Loss: sd-hop (eq. 3) or gao (ablation).
+    #[arg(long, value_enum)]
+    pub loss: Option<LossKind>,
+    /// Ablation: no higher-order potentials.
+    #[arg(long)]
+    pub no_hop: bool,
+    /// Ablation: no pairwise term.
+    #[arg(long)]
+    pub no_pairwise: bool,
+    /// Ablation: no occlusion reasoning (plain HOG templates: every cell
+    /// visible, the loss compares boxes only).
+    #[arg(long)]
+    pub no_occlusion: bool,
+    /// Ablation: pairwise terms only between neighbouring cells along an
+    /// image edge, as Gao et al. 2011 (default: every 4-connected pair).
+    #[arg(long)]
+    pub edge_pairwise: bool,
+    /// Detection threshold saved in the models (default -0.75; -1.0 for
+    /// models trained without masked photographs, `train --sources` without
+    /// `single`).
+    #[arg(long, allow_negative_numbers = true)]
+    pub threshold: Option<f64>,
+    /// Images of each other object used as negatives.
+    #[arg(long, default_value_t = OTHER_NEGATIVES)]
+    pub other_negatives: usize,
+    /// Negative scenes used (from negative/).
+    #[arg(long, default_value_t = NEGATIVE_SCENES)]
+    pub negative_scenes: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+impl TrainSettings {
+    /// The settings: the `--config` file's, then the flags'. `features` is
+    /// the route's feature kind, taken where neither names one.
+    pub fn params(&self, features: FeatureKind) -> Result<(TrainParams, NegativeSet), RouteError> {
+        let mut p = match &self.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .map_err(|e| RouteError::io(format!("{}: {e}", path.display())))?;
+                let json: serde_json::Value = serde_json::from_str(&text)
+                    .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
+                let named = json.pointer("/pyramid/features").is_some();
+                let mut p: TrainParams = serde_json::from_value(json)
+                    .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
+                if !named {
+                    p.pyramid.features = features;
+                }
+                p
+            }
+            None => {
+                let mut p = TrainParams::default();
+                p.pyramid.features = features;
+                p
+            }
+        };
+        if let Some(v) = self.c {
+            p.c = v;
+        }
+        if let Some(v) = self.k {
+            p.k = v;
+        }
+        if let Some(v) = self.template_scale {
+            p.template_scale = v;
+        }
+        if self.template.is_some() {
+            p.template = self.template;
+        }
+        if let Some(v) = self.features {
+            p.pyramid.features = v;
+        }
+        if let Some(v) = self.levels_per_octave {
+            p.pyramid.levels_per_octave = v;
+        }
+        if let Some(v) = self.min_scale {
+            p.pyramid.min_scale = v;
+        }
+        if let Some(v) = self.max_scale {
+            p.pyramid.max_scale = v;
+        }
+        if let Some(v) = self.seg_k {
+            p.segmentation.k = v;
+        }
+        if let Some(v) = self.epsilon {
+            p.epsilon = v;
+        }
+        if let Some(v) = self.max_passes {
+            p.max_passes = v;
+        }
+        if let Some(v) = self.max_inner {
+            p.max_inner = v;
+        }
+        if let Some(v) = self.mining_budget {
+            p.mining_budget = v;
+        }
+        if let Some(v) = self.mining_passes {
+            p.mining_passes = v;
+        }
+        if let Some(v) = self.cache_size {
+            p.cache_size = v;
+        }
+        if let Some(v) = self.seed {
+            p.seed = v;
+        }
+        if let Some(v) = self.background_regions {
+            p.background_regions = v;
+        }
+        if let Some(v) = self.loss {
+            p.loss = v;
+        }
+        if let Some(v) = self.threshold {
+            p.threshold = v;
+        }
+        p.hop &= !self.no_hop;
+        p.pairwise &= !self.no_pairwise;
+        p.occlusion &= !self.no_occlusion;
+        if self.edge_pairwise {
+            p.pair_mode = PairwiseMode::Edges;
+        }
+        p.validate().map_err(RouteError::input)?;
+        if let Some(t) = self.threads {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build_global()
+                .map_err(RouteError::io)?;
+        }
+        let neg = NegativeSet {
+            scenes: self.negative_scenes,
+            per_other_object: self.other_negatives,
+        };
+        Ok((p, neg))
+    }
+}
+
+pub fn parse_template(s: &str) -> Result<[usize; 2], String> {
+    let (r, c) = s.split_once('x').ok_or("expected ROWSxCOLS")?;
+    let r: usize = r.parse().map_err(|_| "bad rows")?;
+    let c: usize = c.parse().map_err(|_| "bad cols")?;
+    Ok([r, c])
+}
+
+impl Default for TrainSettings {
+    /// Nothing set: every parameter the route's or [`TrainParams`]'s.
+    fn default() -> Self {
+        Self {
+            config: None,
+            c: None,
+            k: None,
+            template_scale: None,
+            template: None,
+            features: None,
+            levels_per_octave: None,
+            min_scale: None,
+            max_scale: None,
+            seg_k: None,
+            epsilon: None,
+            max_passes: None,
+            max_inner: None,
+            mining_budget: None,
+            mining_passes: None,
+            exact_check: false,
+            cache_size: None,
+            seed: None,
+            background_regions: None,
+            loss: None,
+            no_hop: false,
+            no_pairwise: false,
+            no_occlusion: false,
+            edge_pairwise: false,
+            threshold: None,
+            other_negatives: OTHER_NEGATIVES,
+            negative_scenes: NEGATIVE_SCENES,
+            threads: None,
+        }
+    }
+}
+
+impl TrainSettings {
+    /// Whether the user set any of the template's size or the pyramid's
+    /// scales (a `--config` file counts): the routes that choose scales
+    /// from the data leave them alone then.
+    pub fn scales_set(&self) -> bool {
+        self.config.is_some()
+            || self.template_scale.is_some()
+            || self.template.is_some()
+            || self.levels_per_octave.is_some()
+            || self.min_scale.is_some()
+            || self.max_scale.is_some()
+    }
+}
