@@ -14,13 +14,16 @@
 //! search over everything runs only to find new constraints or to prove
 //! convergence.
 //!
-//! Why one file of about 950 lines: the cutting-plane loop, its working
-//! set and the QP hand-off are one algorithm whose state they share; the
-//! loss, the QP and the CMU_KO8 driver are already their own modules.
+//! The structural SVM's parts are modules of their own: the examples and
+//! their ground truth (`examples.rs`), the separation oracle
+//! (`search.rs`), the cutting-plane solver's steps (`solver.rs`), the QP
+//! (`qp.rs`) and the loss (`loss.rs`); [`train_joint`] puts them
+//! together. The routes a user trains by are in [`routes`].
 
 pub mod box_correction;
 pub mod cache;
 pub mod components;
+mod examples;
 pub mod ko8;
 pub mod latent;
 pub mod layout;
@@ -31,6 +34,7 @@ pub mod multiview;
 pub mod qp;
 pub mod routes;
 mod search;
+mod solver;
 pub mod views;
 
 use std::collections::{HashMap, HashSet};
@@ -45,21 +49,19 @@ use thiserror::Error;
 
 use crate::data::{load_image, DatasetError, Sample};
 use crate::model::{Model, ModelError, ModelMeta, ViewMeta, FORMAT_VERSION};
-use crate::vision::detect::{box_iou, DetectParams, Detector, Location};
-use crate::vision::energy::{joint_feature, PairwiseMode};
+use crate::vision::detect::{DetectParams, Detector, Location};
+use crate::vision::energy::PairwiseMode;
 use crate::vision::hog::CELL_SIZE;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;
-use crate::vision::pyramid::{FeaturePyramid, PyramidParams};
-use crate::vision::rng::SplitMix64;
+use crate::vision::pyramid::PyramidParams;
 use crate::vision::segment::SegmentParams;
 use crate::vision::shape::{learn_colours, ShapeModel};
 use crate::vision::VisionError;
 
-use loss::{cell_truth, Background, IntegralMask, LossKind};
-use qp::{Plane, WorkingSet};
+use loss::LossKind;
+use qp::Plane;
 
-use cache::HardKey;
 pub use cache::PyramidCache;
 pub use layout::{exact_concave, Layout, PLAIN_HOG_PRIOR};
 
@@ -263,33 +265,6 @@ impl TrainParams {
     }
 }
 
-/// One training image prepared for a model.
-struct Example {
-    pyr: Arc<FeaturePyramid>,
-    /// Weight in the 1-slack average.
-    weight: f64,
-    truth: Option<GroundTruth>,
-    /// Locations found by earlier searches (and the seeds).
-    cache: Vec<Location>,
-    /// A part of a positive photograph searched as a negative image
-    /// ([`TrainParams::background_regions`]).
-    background: Option<Background>,
-    /// Where its hard locations are kept for later trainings.
-    key: HardKey,
-}
-
-struct GroundTruth {
-    visible: IntegralMask,
-    location: Location,
-    bbox: (f64, f64, f64, f64),
-    cells: Vec<bool>,
-    /// The joint feature of the ground truth in training coordinates.
-    psi: Vec<f64>,
-    /// The components of the truth's object in a joint model (`None`: a
-    /// model of one object, every component is its).
-    views: Option<Arc<Vec<bool>>>,
-}
-
 /// What one cutting-plane round found.
 struct Round {
     plane: Plane,
@@ -380,12 +355,55 @@ pub fn train_joint(
     if positives.is_empty() {
         return Err(TrainError::NoData(format!("no positive image of {label}")));
     }
+    let view_labels = component_labels(&positives, &label)?;
+    // Each object's components, once per object (a joint model only).
+    let views_of: HashMap<&str, Arc<Vec<bool>>> = labels
+        .iter()
+        .map(|&l| (l, Arc::new(view_labels.iter().map(|v| v == l).collect())))
+        .collect();
+    let shapes: Vec<(usize, usize)> = (0..view_labels.len())
+        .map(|v| template_shape(&positives, v, params))
+        .collect::<Result<_, _>>()?;
+    let mut layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
+    layout.occlusion = params.occlusion;
+    cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
+    // Ground truth of every positive: the location with the best box IoU.
+    let zero = layout.to_views(&vec![0.0; layout.len]);
+    let det0 = Detector::new(&zero)?;
+    let cx = examples::ExampleContext {
+        label: &label,
+        labels,
+        layout: &layout,
+        det0: &det0,
+        views_of: &views_of,
+        cache,
+        params,
+    };
+    let mut examples = examples::build_examples(&cx, &positives, &negatives, &mut report)?;
+    let w = solver::cutting_plane(
+        &layout,
+        &mut examples,
+        params,
+        &label,
+        progress,
+        &mut report,
+    )?;
+    report.seconds = start.elapsed().as_secs_f64();
+    examples::remember_hard(&examples, cache);
+    let meta = model_meta(name, &shapes, &view_labels, params, &report)?;
+    let model = Model::new(meta, layout.to_views(&w))?;
+    let shapes = learn_shapes(&model, samples, Some(cache));
+    Ok((model.with_shapes(shapes)?, report))
+}
+
+/// Each component's object: the label of its annotations (one object per
+/// component, every component with a positive).
+fn component_labels(positives: &[&Sample], label: &str) -> Result<Vec<String>, TrainError> {
     let n_views = positives
         .iter()
         .filter_map(|s| s.annotation.as_ref().map(|a| a.viewpoint + 1))
         .max()
         .unwrap_or(1);
-    // Each component's object: the label of its annotations (one object).
     let mut view_labels: Vec<Option<&str>> = vec![None; n_views];
     for a in positives.iter().filter_map(|s| s.annotation.as_ref()) {
         match view_labels[a.viewpoint] {
@@ -399,7 +417,7 @@ pub fn train_joint(
             Some(_) => {}
         }
     }
-    let view_labels: Vec<String> = view_labels
+    view_labels
         .iter()
         .enumerate()
         .map(|(v, l)| {
@@ -407,306 +425,19 @@ pub fn train_joint(
                 TrainError::NoData(format!("viewpoint {v} of {label}: no positive image"))
             })
         })
-        .collect::<Result<_, _>>()?;
-    // Each object's components, once per object (a joint model only).
-    let views_of: HashMap<&str, Arc<Vec<bool>>> = labels
-        .iter()
-        .map(|&l| (l, Arc::new(view_labels.iter().map(|v| v == l).collect())))
-        .collect();
-    let shapes: Vec<(usize, usize)> = (0..n_views)
-        .map(|v| template_shape(&positives, v, params))
-        .collect::<Result<_, _>>()?;
-    let mut layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
-    layout.occlusion = params.occlusion;
-    cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
+        .collect()
+}
 
-    // Ground truth of every positive: the location with the best box IoU.
-    let zero = layout.to_views(&vec![0.0; layout.len]);
-    let det0 = Detector::new(&zero)?;
-    let mut rng = SplitMix64::new(params.seed);
-    let pos_w = params.positive_share / positives.len() as f64;
-    // Each positive photograph's background examples (once per image,
-    // away from all its instances of the labels).
-    type PixelBox = (f64, f64, f64, f64);
-    let mut backgrounds: Vec<(&PathBuf, Vec<PixelBox>)> = Vec::new();
-    if params.background_regions > 0 {
-        for s in &positives {
-            let Some(a) = s.annotation.as_ref() else {
-                continue;
-            };
-            if params.renders.contains(&s.image) {
-                continue;
-            }
-            match backgrounds.iter_mut().find(|(p, _)| *p == &s.image) {
-                Some((_, boxes)) => boxes.push(a.bbox),
-                None => backgrounds.push((&s.image, vec![a.bbox])),
-            }
-        }
-    }
-    let n_background = backgrounds.len() * params.background_regions;
-    let neg_w = if negatives.is_empty() && n_background == 0 {
-        0.0
-    } else {
-        (1.0 - params.positive_share) / (negatives.len() + n_background) as f64
-    };
-    let mut examples: Vec<Example> = Vec::new();
-    // Whether each example is a box-only positive.
-    let mut box_only: Vec<bool> = Vec::new();
-    for s in positives.iter().chain(&negatives) {
-        let pyr = cache
-            .get(&s.image)
-            .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", s.image.display())))?;
-        let locs = det0.locations(&pyr, params.max_truncation);
-        let ann = s.annotation.as_ref().filter(|_| ours(s));
-        let truth = match ann {
-            Some(a) => {
-                let best = locs
-                    .iter()
-                    .filter(|l| l.view == a.viewpoint)
-                    .map(|l| (box_iou(det0.grid(&pyr, l).pixel_box(), a.bbox), *l))
-                    .max_by(|x, y| x.0.total_cmp(&y.0).then(y.1.cmp(&x.1)));
-                let Some((iou, location)) = best else {
-                    report
-                        .skipped
-                        .push(format!("{}: no location fits", s.image.display()));
-                    continue;
-                };
-                if iou < 0.5 {
-                    report.skipped.push(format!(
-                        "{}: best template box overlaps the annotation only {iou:.2}",
-                        s.image.display()
-                    ));
-                    continue;
-                }
-                let visible = IntegralMask::new(&a.visible);
-                let grid = det0.grid(&pyr, &location);
-                let mut cells = Vec::new();
-                cell_truth(&grid, &visible, &mut cells);
-                if !params.occlusion {
-                    cells.iter_mut().for_each(|c| *c = true);
-                }
-                let mut psi = vec![0.0; layout.len];
-                let (problem, feats, truncated) = det0.problem_at(&pyr, &location);
-                let j = joint_feature(&feats, &cells, &problem, truncated);
-                layout.add_psi(
-                    location.view,
-                    &j,
-                    1.0,
-                    &mut psi,
-                    params.hop,
-                    params.pairwise,
-                );
-                Some(GroundTruth {
-                    visible,
-                    location,
-                    bbox: grid.pixel_box(),
-                    cells,
-                    psi,
-                    views: views_of
-                        .get(a.label.as_str())
-                        .filter(|_| labels.len() > 1)
-                        .cloned(),
-                })
-            }
-            None => None,
-        };
-        // Seeds: random locations away from the object.
-        let mut seeds = Vec::new();
-        for _ in 0..params.init_locations * 4 {
-            if seeds.len() >= params.init_locations || locs.is_empty() {
-                break;
-            }
-            let l = locs[rng.range_usize(0, locs.len())];
-            let far = truth
-                .as_ref()
-                .is_none_or(|t| box_iou(det0.grid(&pyr, &l).pixel_box(), t.bbox) < 0.3);
-            if far {
-                seeds.push(l);
-            }
-        }
-        let key = HardKey {
-            image: s.image.clone(),
-            region: None,
-            label: label.clone(),
-        };
-        let seeds = first_cache(
-            truth.as_ref().map(|t| t.location),
-            cache.hard(&key),
-            seeds,
-            &locs,
-        );
-        let weight = if truth.is_some() { pos_w } else { neg_w };
-        box_only.push(truth.is_some() && ann.is_some_and(|a| !a.mask_known));
-        examples.push(Example {
-            pyr,
-            weight,
-            truth,
-            cache: seeds,
-            background: None,
-            key,
-        });
-    }
-    for (image, instances) in &backgrounds {
-        let pyr = cache
-            .get(image)
-            .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", image.display())))?;
-        let locs = det0.locations(&pyr, params.max_truncation);
-        let regions = Background::regions(
-            params.background_regions,
-            pyr.image_width as f64,
-            pyr.image_height as f64,
-            instances,
-        );
-        for (ri, bg) in regions.into_iter().enumerate() {
-            let mut seeds = Vec::new();
-            for _ in 0..params.init_locations * 4 {
-                if seeds.len() >= params.init_locations || locs.is_empty() {
-                    break;
-                }
-                let l = locs[rng.range_usize(0, locs.len())];
-                if bg.contains(det0.grid(&pyr, &l).pixel_box()) {
-                    seeds.push(l);
-                }
-            }
-            let key = HardKey {
-                image: (*image).clone(),
-                region: Some(ri),
-                label: label.clone(),
-            };
-            let seeds = first_cache(None, cache.hard(&key), seeds, &locs);
-            box_only.push(false);
-            examples.push(Example {
-                pyr: pyr.clone(),
-                weight: neg_w,
-                truth: None,
-                cache: seeds,
-                background: Some(bg),
-                key,
-            });
-        }
-    }
-    report.background_negatives = examples.iter().filter(|e| e.background.is_some()).count();
-    report.positives = examples.iter().filter(|e| e.truth.is_some()).count();
-    report.negatives = examples.len() - report.positives;
-    if report.positives == 0 {
-        return Err(TrainError::NoData(format!(
-            "no usable positive image of {label}"
-        )));
-    }
-    // Re-weight in case positives were skipped; box-only positives carry
-    // `box_share` of the positives' weight where there are both kinds.
-    let n_box = examples
-        .iter()
-        .zip(&box_only)
-        .filter(|(e, &b)| b && e.truth.is_some())
-        .count();
-    let n_known = report.positives - n_box;
-    let (known_w, box_w) = match params.box_share {
-        Some(share) if n_box > 0 && n_known > 0 => (
-            params.positive_share * (1.0 - share) / n_known as f64,
-            params.positive_share * share / n_box as f64,
-        ),
-        _ => {
-            let w = params.positive_share / report.positives as f64;
-            (w, w)
-        }
-    };
-    for (e, &b) in examples.iter_mut().zip(&box_only) {
-        if e.truth.is_some() {
-            e.weight = if b { box_w } else { known_w };
-        }
-    }
-
-    let nonneg = layout.nonneg();
-    let mut ws = WorkingSet::default();
-    let mut w = vec![0.0; layout.len];
-    let mut xi = 0.0;
-    let mut approx_done = false;
-    progress.set_length(params.max_passes as u64);
-    progress.set_position(0);
-    for pass in 0..=params.max_passes {
-        // Inner iterations over the cached locations (the first pass starts
-        // from the seeds: the initialisation).
-        for _ in 0..params.max_inner {
-            let views = layout.to_views(&w);
-            let det = Detector::new(&views)?;
-            let t = Instant::now();
-            let round = search::search(&det, &layout, &mut examples, params, false, None)?;
-            report.cached_seconds += t.elapsed().as_secs_f64();
-            let viol = round.plane.b - dot(&round.plane.g, &w);
-            report.iterations += 1;
-            if viol <= xi + params.epsilon * 0.5 {
-                break;
-            }
-            let t = Instant::now();
-            ws.add(round.plane);
-            let sol = ws.solve(params.c, &nonneg)?;
-            report.qp_seconds += t.elapsed().as_secs_f64();
-            w = sol.w;
-            xi = sol.xi;
-            report.objective.push(sol.objective);
-        }
-        if pass == params.max_passes {
-            break;
-        }
-        // A full search at every location of every image.
-        let views = layout.to_views(&w);
-        let det = Detector::new(&views)?;
-        let t = Instant::now();
-        // Budgeted searches mine hard examples cheaply while the weights
-        // still move; exact ones decide convergence (or the mining search
-        // does, without `exact_check`).
-        let exact = pass >= params.mining_passes || approx_done;
-        let budget = (!exact).then_some(params.mining_budget);
-        let round = search::search(&det, &layout, &mut examples, params, true, budget)?;
-        report.full_seconds += t.elapsed().as_secs_f64();
-        if exact {
-            report.exact_passes += 1;
-        }
-        report.full_min_cuts.push(round.min_cuts);
-        let viol = round.plane.b - dot(&round.plane.g, &w);
-        report.full_violation.push(viol);
-        report.passes += 1;
-        progress.inc(1);
-        progress.set_message(format!(
-            "{label}: pass {} violation {viol:.4} slack {xi:.4} loss {:.3}",
-            pass + 1,
-            round.loss
-        ));
-        if viol <= xi + params.epsilon {
-            if exact || !params.exact_check {
-                report.converged = true;
-                break;
-            }
-            approx_done = true;
-            continue;
-        }
-        // An exact search that still found violations: mining goes on
-        // (while its passes last), and the next exact search comes when a
-        // budgeted one finds nothing again.
-        approx_done = false;
-        ws.add(round.plane);
-        let sol = ws.solve(params.c, &nonneg)?;
-        w = sol.w;
-        xi = sol.xi;
-        report.objective.push(sol.objective);
-    }
-    report.planes = ws.planes.len();
-    report.seconds = start.elapsed().as_secs_f64();
-    // Each example's hard locations seed the next training of this object
-    // on these images (a latent round, a cross-validation fold).
-    let mut found: HashMap<HardKey, Vec<Location>> = HashMap::new();
-    for ex in &examples {
-        let kept = found.entry(ex.key.clone()).or_default();
-        for l in &ex.cache {
-            if !kept.contains(l) {
-                kept.push(*l);
-            }
-        }
-    }
-    cache.remember_hard(found);
-    let views = layout.to_views(&w);
-    let meta = ModelMeta {
+/// The metadata of a model trained with `params`: its components' shapes
+/// and labels, the detection settings and the training's provenance.
+fn model_meta(
+    name: &str,
+    shapes: &[(usize, usize)],
+    view_labels: &[String],
+    params: &TrainParams,
+    report: &TrainReport,
+) -> Result<ModelMeta, TrainError> {
+    Ok(ModelMeta {
         format_version: FORMAT_VERSION,
         name: name.to_string(),
         cell_size: CELL_SIZE,
@@ -722,7 +453,7 @@ pub fn train_joint(
         },
         viewpoints: shapes
             .iter()
-            .zip(&view_labels)
+            .zip(view_labels)
             .map(|(&(rows, cols), label)| ViewMeta {
                 label: label.clone(),
                 rows,
@@ -745,10 +476,7 @@ pub fn train_joint(
                 "seconds": report.seconds,
             },
         }),
-    };
-    let model = Model::new(meta, views)?;
-    let shapes = learn_shapes(&model, samples, Some(cache));
-    Ok((model.with_shapes(shapes)?, report))
+    })
 }
 
 /// Each viewpoint's pixel shape model ([`ShapeModel`]) from the visible
@@ -805,38 +533,6 @@ pub fn learn_shapes(
             Some(shape)
         })
         .collect()
-}
-
-/// An example's first cache of locations: its ground truth, the hard
-/// locations an earlier training of the same object left for it (those
-/// that are locations of this model: the template may have changed), then
-/// the random seeds; each once.
-fn first_cache(
-    truth: Option<Location>,
-    warm: Vec<Location>,
-    seeds: Vec<Location>,
-    locations: &[Location],
-) -> Vec<Location> {
-    let valid: std::collections::HashSet<Location> = if warm.is_empty() {
-        Default::default()
-    } else {
-        locations.iter().copied().collect()
-    };
-    let mut out: Vec<Location> = Vec::with_capacity(1 + warm.len() + seeds.len());
-    let chosen = truth
-        .into_iter()
-        .chain(warm.into_iter().filter(|l| valid.contains(l)))
-        .chain(seeds);
-    for l in chosen {
-        if !out.contains(&l) {
-            out.push(l);
-        }
-    }
-    out
-}
-
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 /// Template `(rows, cols)` of a viewpoint from its training boxes.

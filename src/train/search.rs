@@ -8,10 +8,11 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
+use super::examples::Example;
 use super::layout::Layout;
 use super::loss::{BackgroundLoss, Truth, TruthLoss};
 use super::qp::Plane;
-use super::{Example, Found, Round, TrainError, TrainParams};
+use super::{Found, Round, TrainError, TrainParams};
 use crate::vision::detect::{DenseBounds, Detector, LossAugment};
 use crate::vision::energy::joint_feature;
 use crate::vision::pyramid::FeaturePyramid;
