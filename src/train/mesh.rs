@@ -597,48 +597,21 @@ pub fn render_set_with(
                 }
             }
         } else if occluded_now {
-            let occlude = rng.range_f64(params.occlusion[0], params.occlusion[1]);
-            let shape = occluder_shape((bx0, by0, bx1, by1), occlude, w, h, &mut rng);
-            let other = &backgrounds[rng.range_usize(0, backgrounds.len())];
-            let mut patch = background_crop(other, w, h, &mut rng);
-            if rng.next_f64() >= params.patch_occluders {
-                // A smooth colour (a random colour with a gentle
-                // gradient): unlike a patch of a background photograph,
-                // it never looks like the negatives.
-                let base: [f64; 3] = std::array::from_fn(|_| rng.range_f64(20.0, 235.0));
-                let (gx, gy) = (rng.range_f64(-0.6, 0.6), rng.range_f64(-0.6, 0.6));
-                for y in 0..h {
-                    for x in 0..w {
-                        for (c, b) in base.iter().enumerate() {
-                            patch[(y * w + x) * 3 + c] =
-                                (b + gx * x as f64 + gy * y as f64).clamp(0.0, 255.0) as f32;
-                        }
-                    }
-                }
-            }
-            let tint = rng.range_f64(0.6, 1.3) as f32;
-            for p in 0..w * h {
-                if shape.data[p] != 0 {
-                    for c in 0..3 {
-                        data[p * 3 + c] = (patch[p * 3 + c] * tint).min(255.0);
-                    }
-                    visible.data[p] = 0;
-                }
-            }
+            let object_box = (bx0, by0, bx1, by1);
+            paste_patch_occluder(
+                &mut data,
+                &mut visible,
+                object_box,
+                backgrounds,
+                params,
+                &mut rng,
+            );
         }
         let visible_area = visible.area();
         if visible_area < full.area() / 10 {
             continue;
         }
-        // Camera: a light blur in half of the renders, then noise.
-        if rng.next_f64() < 0.5 {
-            data = box_blur(&data, w, h);
-        }
-        let sigma = rng.range_f64(1.0, 6.0);
-        for v in data.iter_mut() {
-            let n: f64 = (0..4).map(|_| rng.next_f64() - 0.5).sum::<f64>() * 3f64.sqrt();
-            *v = (*v + (n * sigma) as f32).clamp(0.0, 255.0);
-        }
+        camera_noise(&mut data, w, h, &mut rng);
         let img = ColorImage::new(w, h, data)?;
         let path: PathBuf = dir.join(format!("{name}_{i:05}.jpg"));
         img.to_rgb8().save(&path).map_err(|e| TrainError::Io {
@@ -681,6 +654,61 @@ pub fn render_set_with(
         poses,
         occluded,
     })
+}
+
+/// An occluder over a share of the object's box (`object_box`, pixel
+/// corners): a patch of another background photograph, or for the rest
+/// of `params.patch_occluders` a smooth colour, tinted; the pixels it
+/// covers leave `visible`.
+fn paste_patch_occluder(
+    data: &mut [f32],
+    visible: &mut Mask,
+    object_box: (usize, usize, usize, usize),
+    backgrounds: &[ColorImage],
+    params: &RenderParams,
+    rng: &mut SplitMix64,
+) {
+    let (w, h) = (params.width, params.height);
+    let occlude = rng.range_f64(params.occlusion[0], params.occlusion[1]);
+    let shape = occluder_shape(object_box, occlude, w, h, rng);
+    let other = &backgrounds[rng.range_usize(0, backgrounds.len())];
+    let mut patch = background_crop(other, w, h, rng);
+    if rng.next_f64() >= params.patch_occluders {
+        // A smooth colour (a random colour with a gentle
+        // gradient): unlike a patch of a background photograph,
+        // it never looks like the negatives.
+        let base: [f64; 3] = std::array::from_fn(|_| rng.range_f64(20.0, 235.0));
+        let (gx, gy) = (rng.range_f64(-0.6, 0.6), rng.range_f64(-0.6, 0.6));
+        for y in 0..h {
+            for x in 0..w {
+                for (c, b) in base.iter().enumerate() {
+                    patch[(y * w + x) * 3 + c] =
+                        (b + gx * x as f64 + gy * y as f64).clamp(0.0, 255.0) as f32;
+                }
+            }
+        }
+    }
+    let tint = rng.range_f64(0.6, 1.3) as f32;
+    for p in 0..w * h {
+        if shape.data[p] != 0 {
+            for c in 0..3 {
+                data[p * 3 + c] = (patch[p * 3 + c] * tint).min(255.0);
+            }
+            visible.data[p] = 0;
+        }
+    }
+}
+
+/// The camera's blur (a light one in half of the renders) and noise.
+fn camera_noise(data: &mut Vec<f32>, w: usize, h: usize, rng: &mut SplitMix64) {
+    if rng.next_f64() < 0.5 {
+        *data = box_blur(data, w, h);
+    }
+    let sigma = rng.range_f64(1.0, 6.0);
+    for v in data.iter_mut() {
+        let n: f64 = (0..4).map(|_| rng.next_f64() - 0.5).sum::<f64>() * 3f64.sqrt();
+        *v = (*v + (n * sigma) as f32).clamp(0.0, 255.0);
+    }
 }
 
 /// A 3x3 box blur (edges clamped) of an interleaved RGB buffer.

@@ -330,6 +330,35 @@ pub fn train_with_photo_boxes(
     for v in &mut model.meta.viewpoints {
         v.views.clear();
     }
+    let (directions, rotations) = imputed_viewpoints(
+        name,
+        photos.boxes.len(),
+        renders,
+        poses,
+        mesh,
+        &trained,
+        model.meta.viewpoints.len(),
+    );
+    Ok(RouteModel {
+        model,
+        report,
+        directions,
+        rotations,
+    })
+}
+
+/// Each of `k` components' direction and start rotations from the renders
+/// training imputed to it (`trained`: the samples as the last round
+/// trained them), said on stderr.
+fn imputed_viewpoints(
+    name: &str,
+    photographs: usize,
+    renders: &[Sample],
+    poses: &[crate::pose::Pose],
+    mesh: &Mesh,
+    trained: &[Sample],
+    k: usize,
+) -> (Vec<[f64; 3]>, Vec<Vec<[f64; 4]>>) {
     // The component each render was imputed to, by its image.
     let component: std::collections::HashMap<&Path, usize> = trained
         .iter()
@@ -339,7 +368,6 @@ pub fn train_with_photo_boxes(
                 .map(|a| (s.image.as_path(), a.viewpoint))
         })
         .collect();
-    let k = model.meta.viewpoints.len();
     let assign: Vec<usize> = renders
         .iter()
         .map(|s| {
@@ -354,13 +382,13 @@ pub fn train_with_photo_boxes(
     if imputed == 0 {
         eprintln!(
             "{name}: trained from {} photographs' boxes; the {} renders' rotations are every component's start poses",
-            photos.boxes.len(),
+            photographs,
             renders.len()
         );
     } else {
         eprintln!(
             "{name}: {} photographs' boxes and {} renders trained together; renders per component {:?}",
-            photos.boxes.len(),
+            photographs,
             renders.len(),
             (0..k)
                 .map(|c| assign.iter().filter(|&&a| a == c).count())
@@ -373,12 +401,7 @@ pub fn train_with_photo_boxes(
             renders.len() - imputed
         );
     }
-    Ok(RouteModel {
-        model,
-        report,
-        directions,
-        rotations,
-    })
+    (directions, rotations)
 }
 
 /// Each of `k` components' mean viewing direction (object towards camera,
