@@ -33,6 +33,7 @@ pub mod mirror;
 pub mod multiview;
 pub mod qp;
 pub mod routes;
+pub mod scales;
 mod search;
 mod solver;
 pub mod views;
@@ -64,6 +65,7 @@ use qp::Plane;
 
 pub use cache::PyramidCache;
 pub use layout::{exact_concave, Layout, PLAIN_HOG_PRIOR};
+pub use scales::small_object_scales;
 
 /// Errors of training.
 #[derive(Debug, Error)]
@@ -566,119 +568,6 @@ fn template_shape(
     let cols = (median(&mut ws) * s).round().max(1.0) as usize;
     let rows = (median(&mut hs) * s).round().max(1.0) as usize;
     Ok((rows, cols))
-}
-
-/// Cells of a small object's template along its longer side (see
-/// [`small_object_scales`]); the mesh route's templates come out about as
-/// large.
-pub const SMALL_OBJECT_CELLS: f64 = 12.0;
-
-/// Below this many cells on the side of a square of the median box's area
-/// (at the default template scale) a template is too coarse to tell an
-/// object (LM-O's 40-100 px objects came out 5x5 and found nothing; the
-/// glue, 41x82 px, 4x8).
-pub const SMALL_TEMPLATE_CELLS: f64 = 8.0;
-
-/// Cells of a small object's learned-cell template across its shorter side,
-/// at least: the LM-O glue (41x82 px), 12 cells along and 6 across, scored
-/// 0.192 where 20x10 scored 0.408 (the backbone's cells see about 100
-/// pixels each, so a thin object needs more of them across). With
-/// background examples 16x8 scored 0.400 against 20x10's 0.244 (box-only,
-/// no box correction; one run each, and the glue's figure moves by about
-/// 0.1 between runs whose scales differ by 0.1%) and trained 3.5 times
-/// faster (297 s against 1027 s): a min-cut over 200 cells costs several
-/// times one over 128.
-pub const LEARNED_CELLS_ACROSS: f64 = 8.0;
-
-/// How far below the template scale the pyramid of a small object on
-/// learned cells goes (a factor; HOG's is 4): an octave, objects up to
-/// twice the median box. LM-O box-only (the other 150 photographs show
-/// the glue at a median 1.35 times its training boxes, a tenth of them
-/// over twice): ape 0.601, cat 0.651, duck 0.645, glue 0.350, mean 0.562,
-/// against half an octave's 0.604, 0.643, 0.622, 0.340, mean 0.552 (one
-/// run each; the training 10% longer).
-pub const LEARNED_SCALES_BELOW: f64 = 2.0;
-
-/// Pyramid levels per octave of small objects (see [`small_object_scales`]).
-pub const SMALL_OBJECT_LEVELS_PER_OCTAVE: u32 = 5;
-
-/// Template scale and pyramid for small objects: when the median box of
-/// `sizes` (`(width, height)` in pixels) would make a template of under
-/// [`SMALL_TEMPLATE_CELLS`] (on the side of a square of its area) at
-/// `params`' template scale, the template is scaled up to
-/// [`SMALL_OBJECT_CELLS`] along the median box's longer side (learned
-/// cells: and at least [`LEARNED_CELLS_ACROSS`] across), and the
-/// pyramid upsamples far enough that the smallest box is seen at the
-/// template's size (up to 4x; learned cells: by its area, rounded to whole
-/// levels above the template scale, HOG: by its longer side) and goes down
-/// to a quarter of the template scale (objects four times the median;
-/// learned cells: [`LEARNED_SCALES_BELOW`]), at 5 levels per octave;
-/// `None`: the boxes are large enough for `params` as they are.
-pub fn small_object_scales(sizes: &[(f64, f64)], params: &TrainParams) -> Option<TrainParams> {
-    let good: Vec<(f64, f64)> = sizes
-        .iter()
-        .copied()
-        .filter(|&(w, h)| w.is_finite() && h.is_finite() && w > 0.0 && h > 0.0)
-        .collect();
-    if good.is_empty() || params.template.is_some() {
-        return None;
-    }
-    let median_of = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        (v[v.len() / 2], v[0])
-    };
-    let (side, smallest_side) = median_of(good.iter().map(|&(w, h)| (w * h).sqrt()).collect());
-    let (median, smallest) = median_of(good.iter().map(|&(w, h)| w.max(h)).collect());
-    let (across, _) = median_of(good.iter().map(|&(w, h)| w.min(h)).collect());
-    if side * params.template_scale / CELL_SIZE as f64 >= SMALL_TEMPLATE_CELLS {
-        return None;
-    }
-    let mut scale = SMALL_OBJECT_CELLS * CELL_SIZE as f64 / median;
-    if !params.pyramid.features.is_hog() {
-        scale = scale.max(LEARNED_CELLS_ACROSS * CELL_SIZE as f64 / across);
-    }
-    let scale = scale.min(4.0);
-    // HOG: the smallest box's longer side at the template's. Learned cells:
-    // the smallest box by its area, since boxes of another aspect than the
-    // median's are not found at their longer side's scale anyway (the LM-O
-    // glue's 44x40 box, a bottle seen from above, asked for 3.64 by its
-    // longer side against 2.66 by its area: twice the pixels to search,
-    // the training over 50 min).
-    let max_scale = if params.pyramid.features.is_hog() {
-        (scale * median / smallest).clamp(scale, 4.0)
-    } else {
-        anchored_max_scale(scale, side / smallest_side)
-    };
-    let mut out = params.clone();
-    out.template_scale = scale;
-    out.pyramid.max_scale = max_scale as f32;
-    // Learned cells go down an octave below the template scale, not two
-    // as HOG: their large receptive fields make far smaller levels (the
-    // objects seen four times the median) a source of false positives
-    // (an earlier build: 0.426 down to a quarter; the LM-O glue down to a
-    // quarter on this one: 0.346 against 0.350).
-    out.pyramid.min_scale = if params.pyramid.features.is_hog() {
-        ((scale / 4.0) as f32).min(out.pyramid.min_scale)
-    } else {
-        ((scale / LEARNED_SCALES_BELOW) as f32).min(max_scale as f32)
-    };
-    out.pyramid.levels_per_octave = SMALL_OBJECT_LEVELS_PER_OCTAVE;
-    Some(out)
-}
-
-/// The largest pyramid scale for learned cells: `scale * below` rounded to
-/// a whole number of levels above the template's `scale` (levels are
-/// counted down from the largest, 5 per octave), so that one level sits at
-/// the template scale itself, and at most 4. The LM-O duck's largest scale
-/// of 1.98 left its levels at 1.72 and 1.50 around its template's 1.60:
-/// 0.599 AUC against 0.657 with a level at 1.60.
-fn anchored_max_scale(scale: f64, below: f64) -> f64 {
-    let lpo = f64::from(SMALL_OBJECT_LEVELS_PER_OCTAVE);
-    let mut levels = (below.max(1.0).log2() * lpo).round();
-    while levels > 0.0 && scale * (levels / lpo).exp2() > 4.0 {
-        levels -= 1.0;
-    }
-    (scale * (levels / lpo).exp2()).min(4.0).max(scale)
 }
 
 /// A progress bar in the style used across the CLI (hidden when not a TTY).

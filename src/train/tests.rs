@@ -1,5 +1,6 @@
 //! Tests of the parent module.
 
+use super::scales::*;
 use super::*;
 
 #[test]

@@ -26,7 +26,7 @@ use sha2::{Digest, Sha256};
 
 use super::cnn::{f32_tensor, Backbone, FeatureMap};
 use super::hog::{hog_until, HogMap, CELL_SIZE, HOG_DIM, HOG_STRIDE};
-use super::image::ColorImage;
+use super::image::{area_weights, smooth_weights, ColorImage};
 use super::{Deadline, VisionError};
 
 /// The backbone file, as `scripts/convert_efficientnet_lite0.py` wrote it.
@@ -48,10 +48,6 @@ pub enum FeatureKind {
 }
 
 impl FeatureKind {
-    pub fn is_hog(&self) -> bool {
-        *self == FeatureKind::Hog
-    }
-
     pub fn name(&self) -> &'static str {
         match self {
             FeatureKind::Hog => "hog",
@@ -74,6 +70,41 @@ impl FeatureKind {
         match self {
             FeatureKind::Hog => Ok(None),
             FeatureKind::Cnn => Ok(Some(LearnedCells::builtin()?.projection.fingerprint())),
+        }
+    }
+
+    /// `img` resized to a `w x h` pyramid level as this kind's cells want
+    /// it: HOG's levels as ever (area averages, blocks when upsampled),
+    /// learned cells' interpolated, since the backbone sees the blocks.
+    pub fn resize_until(
+        &self,
+        img: &ColorImage,
+        w: usize,
+        h: usize,
+        deadline: Deadline,
+    ) -> Result<ColorImage, VisionError> {
+        match self {
+            FeatureKind::Hog => img.resize_area_until(w, h, deadline),
+            FeatureKind::Cnn => img.resize_smooth_until(w, h, deadline),
+        }
+    }
+
+    /// The taps of [`Self::resize_until`] along one axis from `src` to
+    /// `dst` pixels (for the GPU's resize, which must agree with it).
+    pub fn resize_weights(&self, src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
+        match self {
+            FeatureKind::Hog => area_weights(src, dst),
+            FeatureKind::Cnn => smooth_weights(src, dst),
+        }
+    }
+
+    /// Whether a level of `pixels` is computed strip by strip on the CPU
+    /// (learned cells above [`STRIP_PIXELS`], whose backbone's maps would
+    /// otherwise grow with the level; HOG's working memory is small).
+    pub fn in_strips(&self, pixels: usize) -> bool {
+        match self {
+            FeatureKind::Hog => false,
+            FeatureKind::Cnn => pixels > STRIP_PIXELS,
         }
     }
 

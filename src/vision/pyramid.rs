@@ -272,7 +272,7 @@ pub fn feature_levels(
                 return Err(VisionError::DeadlineExceeded);
             }
             // A large level of learned cells, strip by strip.
-            if params.features == FeatureKind::Cnn && lw * lh > STRIP_PIXELS {
+            if params.features.in_strips(lw * lh) {
                 let cells = LearnedCells::builtin()?;
                 return Ok((
                     lw,
@@ -286,10 +286,7 @@ pub fn feature_levels(
             }
             // HOG levels as ever; learned cells see upsampled levels
             // interpolated, not in blocks.
-            let resized = match params.features {
-                FeatureKind::Hog => img.resize_area_until(lw, lh, deadline)?,
-                FeatureKind::Cnn => img.resize_smooth_until(lw, lh, deadline)?,
-            };
+            let resized = params.features.resize_until(img, lw, lh, deadline)?;
             if deadline.passed() {
                 return Err(VisionError::DeadlineExceeded);
             }

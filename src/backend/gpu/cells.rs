@@ -9,12 +9,11 @@
 
 use std::num::NonZeroU64;
 
-use super::features::{push_taps, LevelDesc};
+use super::features::{plan_levels, LevelPlan};
 use super::*;
 use crate::vision::cells::LearnedCells;
 use crate::vision::cnn::same_padding;
 use crate::vision::hog::HOG_DIM;
-use crate::vision::image::smooth_weights;
 
 /// Words of one layer's descriptor (`struct Layer` of the kernel).
 const LAYER_WORDS: usize = 16;
@@ -327,55 +326,37 @@ impl Context {
         let Some(wts) = self.learned.clone() else {
             return Err(GpuError::Validation("backbone weights missing".into()));
         };
-        // The level images, as the HOG path resizes them, with smooth taps.
-        let mut src: Vec<f32> = Vec::new();
-        let mut taps: Vec<u32> = Vec::new();
-        let mut descs: Vec<LevelDesc> = Vec::new();
+        // The level images, as the HOG path lays them out, with the
+        // learned cells' smooth taps.
+        let LevelPlan {
+            src,
+            taps,
+            descs,
+            owner,
+            tmp_n,
+            dst_n,
+        } = plan_levels(work, only)?;
         let mut cells: Vec<(usize, usize, usize, usize)> = Vec::new();
-        let (mut tmp_n, mut dst_n, mut cells_n) = (0usize, 0usize, 0usize);
+        let mut cells_n = 0usize;
         let mut steps: Vec<Step> = Vec::new();
         let mut sizes = Sizes::default();
-        for (k, (img, p)) in work.iter().enumerate() {
-            let src_off = src.len();
-            src.extend_from_slice(img.data());
-            let (w, h) = (img.width(), img.height());
-            let wanted = level_sizes(w, h, p)
-                .into_iter()
-                .enumerate()
-                .filter(|(i, _)| only.is_none_or(|o| o == *i))
-                .map(|(_, s)| s);
-            for (lw, lh) in wanted {
-                let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
-                let d = LevelDesc {
-                    src_w: to_u32(w, "width")?,
-                    src_h: to_u32(h, "height")?,
-                    src_off: to_u32(src_off, "image offset")?,
-                    dst_w: to_u32(lw, "level width")?,
-                    dst_h: to_u32(lh, "level height")?,
-                    dst_off: to_u32(dst_n, "level offset")?,
-                    tmp_off: to_u32(tmp_n, "resize offset")?,
-                    xtap_off: push_taps(&mut taps, &smooth_weights(w, lw))?,
-                    ytap_off: push_taps(&mut taps, &smooth_weights(h, lh))?,
-                    ..LevelDesc::default()
-                };
-                if cw > 0 && ch > 0 {
-                    plan_level(
-                        lc,
-                        &wts,
-                        (lw, lh),
-                        dst_n,
-                        (cw, ch),
-                        cells_n,
-                        &mut steps,
-                        &mut sizes,
-                    )?;
-                }
-                cells.push((k, cw, ch, cells_n));
-                cells_n += cw * ch * HOG_STRIDE;
-                tmp_n += h * lw * 3;
-                dst_n += lw * lh * 3;
-                descs.push(d);
+        for (d, &k) in descs.iter().zip(&owner) {
+            let (lw, lh) = (d.dst_w as usize, d.dst_h as usize);
+            let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
+            if cw > 0 && ch > 0 {
+                plan_level(
+                    lc,
+                    &wts,
+                    (lw, lh),
+                    d.dst_off as usize,
+                    (cw, ch),
+                    cells_n,
+                    &mut steps,
+                    &mut sizes,
+                )?;
             }
+            cells.push((k, cw, ch, cells_n));
+            cells_n += cw * ch * HOG_STRIDE;
         }
         // Each step's descriptor at an offset the device can bind.
         let align = (self.device.limits().min_storage_buffer_offset_alignment as usize)

@@ -1,6 +1,7 @@
-//! The feature stage on the GPU: the area resize of every pyramid level
-//! and the HOG maps (`kernels/resize_area.wgsl`, `kernels/hog.wgsl`) of a
-//! batch of images in one submission.
+//! The feature stage on the GPU: the pyramid levels of a batch of images
+//! planned once for both kinds of cells ([`plan_levels`]: each level's
+//! resize as its kind wants it), and the HOG maps
+//! (`kernels/resize_area.wgsl`, `kernels/hog.wgsl`) in one submission.
 
 use super::*;
 
@@ -47,6 +48,70 @@ impl LevelDesc {
 }
 
 pub(super) use crate::vision::pyramid::level_sizes;
+
+/// The pyramid levels of a batch laid out in the device's buffers: one
+/// copy of each image, each level's resize descriptor (taps of its
+/// kind's resize) and scratch offsets; the cells' offsets are the
+/// caller's to fill.
+#[derive(Default)]
+pub(super) struct LevelPlan {
+    /// The images' pixels, each image once.
+    pub(super) src: Vec<f32>,
+    pub(super) taps: Vec<u32>,
+    pub(super) descs: Vec<LevelDesc>,
+    /// Each level's `(image, settings)` pair, by index.
+    pub(super) owner: Vec<usize>,
+    /// Floats of the resize's intermediate and of the level images.
+    pub(super) tmp_n: usize,
+    pub(super) dst_n: usize,
+}
+
+/// Plans the levels of every `(image, settings)` pair (of level `only`
+/// alone, the index among `level_sizes`, when given), in order.
+pub(super) fn plan_levels(
+    work: &[(&ColorImage, PyramidParams)],
+    only: Option<usize>,
+) -> Result<LevelPlan, GpuError> {
+    let mut plan = LevelPlan::default();
+    let mut src_offs: Vec<(usize, usize)> = Vec::new();
+    for (k, (img, p)) in work.iter().enumerate() {
+        // One copy of each image, shared by its settings.
+        let key = *img as *const _ as usize;
+        let src_off = match src_offs.iter().find(|(ptr, _)| *ptr == key) {
+            Some(&(_, off)) => off,
+            None => {
+                let off = plan.src.len();
+                plan.src.extend_from_slice(img.data());
+                src_offs.push((key, off));
+                off
+            }
+        };
+        let (w, h) = (img.width(), img.height());
+        let wanted = level_sizes(w, h, p)
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| only.is_none_or(|o| o == *i))
+            .map(|(_, s)| s);
+        for (lw, lh) in wanted {
+            plan.descs.push(LevelDesc {
+                src_w: to_u32(w, "width")?,
+                src_h: to_u32(h, "height")?,
+                src_off: to_u32(src_off, "image offset")?,
+                dst_w: to_u32(lw, "level width")?,
+                dst_h: to_u32(lh, "level height")?,
+                dst_off: to_u32(plan.dst_n, "level offset")?,
+                tmp_off: to_u32(plan.tmp_n, "resize offset")?,
+                xtap_off: push_taps(&mut plan.taps, &p.features.resize_weights(w, lw))?,
+                ytap_off: push_taps(&mut plan.taps, &p.features.resize_weights(h, lh))?,
+                ..LevelDesc::default()
+            });
+            plan.owner.push(k);
+            plan.tmp_n += h * lw * 3;
+            plan.dst_n += lw * lh * 3;
+        }
+    }
+    Ok(plan)
+}
 
 pub(super) fn push_taps(taps: &mut Vec<u32>, table: &[Vec<(usize, f32)>]) -> Result<u32, GpuError> {
     let off = to_u32(taps.len(), "taps")?;
@@ -133,53 +198,26 @@ impl Context {
         work: &[(&ColorImage, PyramidParams)],
         images: bool,
     ) -> Result<Features, GpuError> {
-        let mut src: Vec<f32> = Vec::new();
-        let mut taps: Vec<u32> = Vec::new();
-        let mut descs: Vec<LevelDesc> = Vec::new();
-        let mut owner: Vec<usize> = Vec::new();
-        let (mut tmp_n, mut dst_n, mut grad_n, mut hist_n, mut hog_n) = (0, 0, 0, 0, 0);
-        let mut src_offs: Vec<(usize, usize)> = Vec::new();
-        for (k, (img, p)) in work.iter().enumerate() {
-            // One copy of each image, shared by its settings.
-            let src_off = match src_offs
-                .iter()
-                .find(|(ptr, _)| *ptr == *img as *const _ as usize)
-            {
-                Some(&(_, off)) => off,
-                None => {
-                    let off = src.len();
-                    src.extend_from_slice(img.data());
-                    src_offs.push((*img as *const _ as usize, off));
-                    off
-                }
-            };
-            let (w, h) = (img.width(), img.height());
-            for (lw, lh) in level_sizes(w, h, p) {
-                let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
-                let d = LevelDesc {
-                    src_w: to_u32(w, "width")?,
-                    src_h: to_u32(h, "height")?,
-                    src_off: to_u32(src_off, "image offset")?,
-                    dst_w: to_u32(lw, "level width")?,
-                    dst_h: to_u32(lh, "level height")?,
-                    dst_off: to_u32(dst_n, "level offset")?,
-                    tmp_off: to_u32(tmp_n, "resize offset")?,
-                    xtap_off: push_taps(&mut taps, &area_weights(w, lw))?,
-                    ytap_off: push_taps(&mut taps, &area_weights(h, lh))?,
-                    cw: to_u32(cw, "cells")?,
-                    ch: to_u32(ch, "cells")?,
-                    hist_off: to_u32(hist_n, "histogram offset")?,
-                    hog_off: to_u32(hog_n, "feature offset")?,
-                    grad_off: to_u32(grad_n, "gradient offset")?,
-                };
-                tmp_n += h * lw * 3;
-                dst_n += lw * lh * 3;
-                grad_n += lw * lh;
-                hist_n += cw * ch * 18;
-                hog_n += cw * ch * HOG_STRIDE;
-                descs.push(d);
-                owner.push(k);
-            }
+        let LevelPlan {
+            src,
+            taps,
+            mut descs,
+            owner,
+            tmp_n,
+            dst_n,
+        } = plan_levels(work, None)?;
+        let (mut grad_n, mut hist_n, mut hog_n) = (0, 0, 0);
+        for d in &mut descs {
+            let (lw, lh) = (d.dst_w as usize, d.dst_h as usize);
+            let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
+            d.cw = to_u32(cw, "cells")?;
+            d.ch = to_u32(ch, "cells")?;
+            d.hist_off = to_u32(hist_n, "histogram offset")?;
+            d.hog_off = to_u32(hog_n, "feature offset")?;
+            d.grad_off = to_u32(grad_n, "gradient offset")?;
+            grad_n += lw * lh;
+            hist_n += cw * ch * 18;
+            hog_n += cw * ch * HOG_STRIDE;
         }
         let mut hogs: Vec<Vec<HogMap>> = vec![Vec::new(); work.len()];
         let mut imgs: Vec<Vec<ColorImage>> = vec![Vec::new(); work.len()];

@@ -29,10 +29,11 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use super::{Backend, BackendError, BackendInfo, CpuBackend, FeatureJob};
+use crate::vision::cells::FeatureKind;
 use crate::vision::detect::{chain_pair_weight, scan_range, DenseBounds, LevelBounds, Location};
 use crate::vision::energy::ViewWeights;
 use crate::vision::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
-use crate::vision::image::{area_weights, ColorImage};
+use crate::vision::image::ColorImage;
 use crate::vision::pyramid::{feature_levels, FeaturePyramid, Level, PyramidParams, PyramidTiming};
 use crate::vision::segment::{segment_until, SegmentParams, Segmentation};
 use crate::vision::{Deadline, VisionError};
@@ -733,10 +734,9 @@ impl Backend for GpuBackend {
         for (j, ok) in batch.iter().zip(&checked) {
             if ok.is_ok() {
                 for (p, s) in j.settings {
-                    if p.features.is_hog() {
-                        work.push((j.image.as_ref(), *p));
-                    } else {
-                        learned.push((j.image.as_ref(), *p, j.deadline));
+                    match p.features {
+                        FeatureKind::Hog => work.push((j.image.as_ref(), *p)),
+                        FeatureKind::Cnn => learned.push((j.image.as_ref(), *p, j.deadline)),
                     }
                     segs.push((j.image.as_ref(), *s, j.deadline));
                 }
@@ -808,17 +808,16 @@ impl Backend for GpuBackend {
             let mut pyrs = Vec::with_capacity(j.settings.len());
             let mut failed = None;
             for (p, s) in j.settings {
-                let (hog, features_ms) = if p.features.is_hog() {
-                    (hogs.next().unwrap_or_default(), gpu_ms)
-                } else {
-                    match learned.next() {
+                let (hog, features_ms) = match p.features {
+                    FeatureKind::Hog => (hogs.next().unwrap_or_default(), gpu_ms),
+                    FeatureKind::Cnn => match learned.next() {
                         Some(Ok(l)) => l,
                         Some(Err(e)) => {
                             failed = Some(BackendError::from(e));
                             (Vec::new(), 0.0)
                         }
                         None => (Vec::new(), 0.0),
-                    }
+                    },
                 };
                 match segmentations.next() {
                     Some(Ok((seg, seg_ms))) => {
