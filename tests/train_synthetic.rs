@@ -10,7 +10,7 @@ use sdhop::data::{Annotation, Sample};
 use sdhop::model::Model;
 use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
 use sdhop::synth::{hand_model, scene, HandModelParams, Scene, SceneParams, SynthObject};
-use sdhop::train::{train_model, PyramidCache, TrainParams};
+use sdhop::train::{train_model, ExampleParams, PyramidCache, SolverParams, TrainParams};
 use sdhop::vision::cells::FeatureKind;
 use sdhop::vision::detect::{box_iou, LossAugment};
 use sdhop::vision::energy::hop_curvature;
@@ -84,9 +84,15 @@ fn held_out_hits(model: &Model, n: u64) -> u64 {
 fn training_learns_to_detect_and_segment_held_out_scenes() {
     let params = TrainParams {
         template_scale: 1.0,
-        max_passes: 6,
-        mining_passes: 3,
-        init_locations: 20,
+        solver: SolverParams {
+            max_passes: 6,
+            mining_passes: 3,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: 20,
+            ..Default::default()
+        },
         ..TrainParams::default()
     };
     let cache = PyramidCache::default();
@@ -181,9 +187,15 @@ fn training_learns_to_detect_and_segment_held_out_scenes() {
 fn training_on_learned_cells_detects_held_out_scenes() {
     let mut params = TrainParams {
         template_scale: 1.0,
-        max_passes: 4,
-        mining_passes: 2,
-        init_locations: 20,
+        solver: SolverParams {
+            max_passes: 4,
+            mining_passes: 2,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: 20,
+            ..Default::default()
+        },
         ..TrainParams::default()
     };
     params.pyramid.features = FeatureKind::Cnn;
@@ -263,9 +275,15 @@ fn training_cli_refuses_bad_input_with_status_2() {
 fn lean_pyramids_train_the_same_weights() {
     let params = TrainParams {
         template_scale: 1.0,
-        max_passes: 2,
-        mining_passes: 1,
-        init_locations: 10,
+        solver: SolverParams {
+            max_passes: 2,
+            mining_passes: 1,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: 10,
+            ..Default::default()
+        },
         ..TrainParams::default()
     };
     let full = PyramidCache::default();
@@ -304,9 +322,15 @@ fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
     use sdhop::train::box_correction;
     let params = TrainParams {
         template_scale: 1.0,
-        max_passes: 4,
-        mining_passes: 2,
-        init_locations: 20,
+        solver: SolverParams {
+            max_passes: 4,
+            mining_passes: 2,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: 20,
+            ..Default::default()
+        },
         ..TrainParams::default()
     };
     let cache = PyramidCache::default();
@@ -499,9 +523,15 @@ fn background_regions_train_from_positive_scenes_alone() {
 fn background_params() -> TrainParams {
     TrainParams {
         template_scale: 1.0,
-        max_passes: 6,
-        init_locations: 20,
-        background_regions: 4,
+        solver: SolverParams {
+            max_passes: 6,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: 20,
+            background_regions: 4,
+            ..Default::default()
+        },
         ..TrainParams::default()
     }
 }
@@ -562,12 +592,10 @@ fn mining_searches_alone_train_a_detector() {
         .chain((0..4).map(|seed| make_sample(&cache, &base, &OBJECT, 1800 + seed, None).0))
         .collect();
     let refs: Vec<&Sample> = samples.iter().collect();
-    let mined = TrainParams {
-        mining_passes: base.max_passes,
-        mining_budget: 64,
-        exact_check: false,
-        ..base.clone()
-    };
+    let mut mined = base.clone();
+    mined.solver.mining_passes = base.solver.max_passes;
+    mined.solver.mining_budget = 64;
+    mined.solver.exact_check = false;
     let (model, report) = train_model("thing", &refs, &cache, &mined, &pb).unwrap();
     assert_eq!(report.exact_passes, 0, "{report:?}");
     assert!(report.passes >= 2, "{report:?}");
@@ -577,10 +605,8 @@ fn mining_searches_alone_train_a_detector() {
     assert!(hits >= n - 1, "mining: {hits}/{n} held-out objects found");
 
     // With the exact check, a mining search that finds nothing is checked.
-    let checked = TrainParams {
-        exact_check: true,
-        ..mined
-    };
+    let mut checked = mined.clone();
+    checked.solver.exact_check = true;
     let (_, report) = train_model("thing", &refs, &cache, &checked, &pb).unwrap();
     if report.converged {
         assert!(report.exact_passes >= 1, "{report:?}");

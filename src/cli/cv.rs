@@ -110,14 +110,14 @@ pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
     let data = Ko8Data::load(&args.ko8, &args.objects).map_err(Failure::input)?;
     let cache = PyramidCache::default();
     let cs = if args.c_values.is_empty() {
-        vec![params.c]
+        vec![params.solver.c]
     } else {
         args.c_values.clone()
     };
     let mut best: Option<BestCv> = None;
     let mut summary = Vec::new();
     for &c in &cs {
-        params.c = c;
+        params.solver.c = c;
         let t = std::time::Instant::now();
         // With several values of C, each keeps its models in DIR/c-C.
         let per_c = |d: &Path| {

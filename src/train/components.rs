@@ -257,10 +257,8 @@ mod tests {
             backgrounds: (0..4).map(scene).collect(),
             boxes: Vec::new(),
         };
-        let params = TrainParams {
-            max_passes: 2,
-            ..TrainParams::default()
-        };
+        let mut params = TrainParams::default();
+        params.solver.max_passes = 2;
         let mv = MultiViewParams {
             augment: super::super::views::AugmentParams {
                 per_view: 2,

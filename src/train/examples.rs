@@ -73,14 +73,14 @@ pub(super) fn build_examples(
     report: &mut TrainReport,
 ) -> Result<Vec<Example>, TrainError> {
     let params = cx.params;
-    let mut rng = SplitMix64::new(params.seed);
-    let pos_w = params.positive_share / positives.len() as f64;
+    let mut rng = SplitMix64::new(params.examples.seed);
+    let pos_w = params.examples.positive_share / positives.len() as f64;
     let backgrounds = background_photographs(positives, params);
-    let n_background = backgrounds.len() * params.background_regions;
+    let n_background = backgrounds.len() * params.examples.background_regions;
     let neg_w = if negatives.is_empty() && n_background == 0 {
         0.0
     } else {
-        (1.0 - params.positive_share) / (negatives.len() + n_background) as f64
+        (1.0 - params.examples.positive_share) / (negatives.len() + n_background) as f64
     };
     let mut examples: Vec<Example> = Vec::new();
     // Whether each example is a box-only positive.
@@ -106,7 +106,7 @@ pub(super) fn build_examples(
             None => None,
         };
         // Seeds: random locations away from the object.
-        let seeds = random_seeds(&locs, params.init_locations, &mut rng, |l| {
+        let seeds = random_seeds(&locs, params.examples.init_locations, &mut rng, |l| {
             truth
                 .as_ref()
                 .is_none_or(|t| box_iou(cx.det0.grid(&pyr, l).pixel_box(), t.bbox) < 0.3)
@@ -159,14 +159,14 @@ fn background_photographs<'a>(
     params: &TrainParams,
 ) -> Vec<(&'a PathBuf, Vec<PixelBox>)> {
     let mut backgrounds: Vec<(&PathBuf, Vec<PixelBox>)> = Vec::new();
-    if params.background_regions == 0 {
+    if params.examples.background_regions == 0 {
         return backgrounds;
     }
     for s in positives {
         let Some(a) = s.annotation.as_ref() else {
             continue;
         };
-        if params.renders.contains(&s.image) {
+        if params.examples.renders.contains(&s.image) {
             continue;
         }
         match backgrounds.iter_mut().find(|(p, _)| *p == &s.image) {
@@ -204,7 +204,7 @@ fn ground_truth(
     let grid = det0.grid(pyr, &location);
     let mut cells = Vec::new();
     cell_truth(&grid, &visible, &mut cells);
-    if !params.occlusion {
+    if !params.energy.occlusion {
         cells.iter_mut().for_each(|c| *c = true);
     }
     let mut psi = vec![0.0; layout.len];
@@ -215,8 +215,8 @@ fn ground_truth(
         &j,
         1.0,
         &mut psi,
-        params.hop,
-        params.pairwise,
+        params.energy.hop,
+        params.energy.pairwise,
     );
     Ok(GroundTruth {
         visible,
@@ -268,14 +268,14 @@ fn background_examples(
         .ok_or_else(|| TrainError::NoData(format!("{}: no pyramid", image.display())))?;
     let locs = cx.det0.locations(&pyr, params.max_truncation);
     let regions = Background::regions(
-        params.background_regions,
+        params.examples.background_regions,
         pyr.image_width as f64,
         pyr.image_height as f64,
         instances,
     );
     let mut out = Vec::new();
     for (ri, bg) in regions.into_iter().enumerate() {
-        let seeds = random_seeds(&locs, params.init_locations, rng, |l| {
+        let seeds = random_seeds(&locs, params.examples.init_locations, rng, |l| {
             bg.contains(cx.det0.grid(&pyr, l).pixel_box())
         });
         let key = HardKey {
@@ -305,13 +305,13 @@ fn reweight(examples: &mut [Example], box_only: &[bool], params: &TrainParams, p
         .filter(|(e, &b)| b && e.truth.is_some())
         .count();
     let n_known = positives - n_box;
-    let (known_w, box_w) = match params.box_share {
+    let (known_w, box_w) = match params.examples.box_share {
         Some(share) if n_box > 0 && n_known > 0 => (
-            params.positive_share * (1.0 - share) / n_known as f64,
-            params.positive_share * share / n_box as f64,
+            params.examples.positive_share * (1.0 - share) / n_known as f64,
+            params.examples.positive_share * share / n_box as f64,
         ),
         _ => {
-            let w = params.positive_share / positives as f64;
+            let w = params.examples.positive_share / positives as f64;
             (w, w)
         }
     };

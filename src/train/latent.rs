@@ -245,7 +245,10 @@ mod tests {
                 max_scale: 1.0,
                 ..Default::default()
             },
-            max_passes: 3,
+            solver: crate::train::SolverParams {
+                max_passes: 3,
+                ..Default::default()
+            },
             ..TrainParams::default()
         };
         let cache = PyramidCache::default();

@@ -91,14 +91,12 @@ pub enum TrainError {
 /// ([`TrainParams::background_regions`]).
 pub const MAX_BACKGROUND_REGIONS: usize = 16;
 
-/// Every setting of training; saved in the model's provenance.
+/// Every setting of training, grouped by concern; saved in the model's
+/// provenance (flat: a group's fields sit beside the others in the JSON,
+/// as in a `--config` file).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TrainParams {
-    /// Regularisation constant `C` of the 1-slack QP.
-    pub c: f64,
-    /// Standard clique size `K` of the higher-order potentials.
-    pub k: usize,
     /// Template size: the median training box times this, in cells of 8 px
     /// (so the median object is found on the pyramid level of this scale).
     pub template_scale: f64,
@@ -108,16 +106,91 @@ pub struct TrainParams {
     pub segmentation: SegmentParams,
     /// Largest fraction of a box's cells outside the image.
     pub max_truncation: f64,
+    /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
+    /// (`sdhop-train cv`): the highest threshold that keeps the best figures.
+    /// Held-out objects often score below the margin, so thresholds at 0 or
+    /// above lose recall.
+    pub threshold: f64,
+    /// The energy the model scores with, and the loss it is trained on.
+    #[serde(flatten)]
+    pub energy: EnergyParams,
+    /// The cutting-plane solver's regularisation, passes and searches.
+    #[serde(flatten)]
+    pub solver: SolverParams,
+    /// How the training examples are made and weighted.
+    #[serde(flatten)]
+    pub examples: ExampleParams,
+}
+
+impl Default for TrainParams {
+    fn default() -> Self {
+        Self {
+            template_scale: 0.8,
+            template: None,
+            pyramid: PyramidParams::default(),
+            segmentation: SegmentParams::default(),
+            max_truncation: 0.5,
+            threshold: -0.75,
+            energy: EnergyParams::default(),
+            solver: SolverParams::default(),
+            examples: ExampleParams::default(),
+        }
+    }
+}
+
+/// The energy a model scores with (paper eq. 1) and the loss it is
+/// trained on (eq. 3), with the ablations that turn parts of them off.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct EnergyParams {
+    /// Standard clique size `K` of the higher-order potentials.
+    pub k: usize,
+    pub loss: LossKind,
+    /// Weight of the loss's visibility (Hamming) term against its box
+    /// term (1: eq. (3) of the paper).
+    pub seg_weight: f64,
+    /// Train the higher-order potentials (false: the no-HOP ablation).
+    pub hop: bool,
+    /// Train the pairwise term (false: no pairwise ablation).
+    pub pairwise: bool,
+    /// Occlusion reasoning (false: the plain-HOG ablation: every cell is
+    /// visible in training and detection, the occlusion filter and the
+    /// visibility prior are unused and the loss compares boxes only).
+    pub occlusion: bool,
+    /// Which neighbour pairs carry the pairwise term: every 4-connected
+    /// pair (SD-HOP) or only pairs along image edges (the Gao et al. 2011
+    /// ablation).
+    pub pair_mode: PairwiseMode,
+}
+
+impl Default for EnergyParams {
+    fn default() -> Self {
+        Self {
+            k: 4,
+            loss: LossKind::SdHop,
+            seg_weight: 1.0,
+            hop: true,
+            pairwise: true,
+            occlusion: true,
+            pair_mode: PairwiseMode::Grid,
+        }
+    }
+}
+
+/// The 1-slack cutting-plane solver: its regularisation, stopping
+/// tolerance, passes, mining searches and caches.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SolverParams {
+    /// Regularisation constant `C` of the 1-slack QP.
+    pub c: f64,
     /// Stop when a full search finds no constraint violated by more than
     /// this beyond the working set's slack.
     pub epsilon: f64,
     /// Full searches over every location of every image, at most.
     pub max_passes: usize,
-    /// Cutting-plane iterations over the cached locations per full search,
     /// at most (fewer when the cache stops yielding violated constraints).
     pub max_inner: usize,
-    /// Random locations per image that seed the cache (initialisation).
-    pub init_locations: usize,
     /// The first `mining_passes` full searches are hard-example mining:
     /// each image's search reaches at most `mining_budget` locations (in
     /// order of the stage-1 bound) instead of every one whose bound says
@@ -141,6 +214,30 @@ pub struct TrainParams {
     /// Most locations kept in an image's cache (the least recently most
     /// violated leave first).
     pub cache_size: usize,
+}
+
+impl Default for SolverParams {
+    fn default() -> Self {
+        Self {
+            c: 10.0,
+            epsilon: 0.01,
+            max_passes: 5,
+            max_inner: 30,
+            mining_passes: 0,
+            mining_budget: 300,
+            exact_check: true,
+            cache_size: 12,
+        }
+    }
+}
+
+/// How the training examples are made and weighted: seeds, shares of
+/// the objective, background regions.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ExampleParams {
+    /// Random locations per image that seed the cache (initialisation).
+    pub init_locations: usize,
     /// Share of the objective carried by the positive images (the negatives
     /// carry the rest).
     pub positive_share: f64,
@@ -149,25 +246,6 @@ pub struct TrainParams {
     /// positives with known masks (renders, masked photographs); `None`:
     /// every positive weighs the same.
     pub box_share: Option<f64>,
-    pub loss: LossKind,
-    /// Weight of the loss's visibility (Hamming) term against its box
-    /// term (1: eq. (3) of the paper).
-    pub seg_weight: f64,
-    /// Train the higher-order potentials (false: the no-HOP ablation).
-    pub hop: bool,
-    /// Train the pairwise term (false: no pairwise ablation).
-    pub pairwise: bool,
-    /// Occlusion reasoning (false: the plain-HOG ablation: every cell is
-    /// visible in training and detection, the occlusion filter and the
-    /// visibility prior are unused and the loss compares boxes only).
-    pub occlusion: bool,
-    /// Which neighbour pairs carry the pairwise term: every 4-connected
-    /// pair (SD-HOP) or only pairs along image edges (the Gao et al. 2011
-    /// ablation).
-    pub pair_mode: PairwiseMode,
-    pub seed: u64,
-    /// Each positive photograph also serves as this many negative examples,
-    /// one per region of a grid over it (windows centred in the region,
     /// overlapping none of the photograph's instances by IoU 0.3 or more;
     /// [`loss::Background`]): the photograph's own clutter as hard
     /// negatives, where the 1-slack loss of the positive itself weighs only
@@ -178,45 +256,18 @@ pub struct TrainParams {
     /// own). Not saved: the provenance names the route that set it.
     #[serde(skip)]
     pub renders: Arc<HashSet<PathBuf>>,
-    /// Detection threshold saved in the model (score units; the SVM margin
-    /// puts positives at >= 1 and negatives at <= -1). The default, -0.75,
-    /// is what 5-fold cross-validation on CMU_KO8 chose with C = 10
-    /// (`sdhop-train cv`): the highest threshold that keeps the best figures.
-    /// Held-out objects often score below the margin, so thresholds at 0 or
-    /// above lose recall.
-    pub threshold: f64,
+    pub seed: u64,
 }
 
-impl Default for TrainParams {
+impl Default for ExampleParams {
     fn default() -> Self {
         Self {
-            c: 10.0,
-            k: 4,
-            template_scale: 0.8,
-            template: None,
-            pyramid: PyramidParams::default(),
-            segmentation: SegmentParams::default(),
-            max_truncation: 0.5,
-            epsilon: 0.01,
-            max_passes: 5,
-            max_inner: 30,
             init_locations: 30,
-            mining_passes: 0,
-            mining_budget: 300,
-            exact_check: true,
-            cache_size: 12,
             positive_share: 0.5,
             box_share: None,
-            loss: LossKind::SdHop,
-            seg_weight: 1.0,
-            hop: true,
-            pairwise: true,
-            occlusion: true,
-            pair_mode: PairwiseMode::Grid,
-            seed: 1,
             background_regions: 0,
             renders: Arc::default(),
-            threshold: -0.75,
+            seed: 1,
         }
     }
 }
@@ -225,10 +276,10 @@ impl TrainParams {
     /// Checks the settings before any work.
     pub fn validate(&self) -> Result<(), TrainError> {
         let bad = |m: String| Err(TrainError::NoData(format!("invalid setting: {m}")));
-        if !self.c.is_finite() || self.c <= 0.0 {
-            return bad(format!("C must be > 0, got {}", self.c));
+        if !self.solver.c.is_finite() || self.solver.c <= 0.0 {
+            return bad(format!("C must be > 0, got {}", self.solver.c));
         }
-        if self.k < 1 {
+        if self.energy.k < 1 {
             return bad("K must be >= 1".into());
         }
         if self.template_scale.is_nan() || self.template_scale <= 0.0 || self.template_scale > 4.0 {
@@ -237,16 +288,20 @@ impl TrainParams {
                 self.template_scale
             ));
         }
-        if self.epsilon.is_nan() || self.epsilon <= 0.0 {
+        if self.solver.epsilon.is_nan() || self.solver.epsilon <= 0.0 {
             return bad("epsilon must be > 0".into());
         }
-        if !self.seg_weight.is_finite() || self.seg_weight < 0.0 {
-            return bad(format!("seg_weight must be >= 0, got {}", self.seg_weight));
+        if !self.energy.seg_weight.is_finite() || self.energy.seg_weight < 0.0 {
+            return bad(format!(
+                "seg_weight must be >= 0, got {}",
+                self.energy.seg_weight
+            ));
         }
-        if !(0.0..=1.0).contains(&self.positive_share) {
+        if !(0.0..=1.0).contains(&self.examples.positive_share) {
             return bad("positive_share must be in [0, 1]".into());
         }
         if self
+            .examples
             .box_share
             .is_some_and(|b| !(0.0..1.0).contains(&b) || b == 0.0)
         {
@@ -255,10 +310,10 @@ impl TrainParams {
         if !(0.0..1.0).contains(&self.max_truncation) || !self.threshold.is_finite() {
             return bad("max_truncation must be in [0, 1) and the threshold finite".into());
         }
-        if self.background_regions > MAX_BACKGROUND_REGIONS {
+        if self.examples.background_regions > MAX_BACKGROUND_REGIONS {
             return bad(format!(
                 "background_regions must be at most {MAX_BACKGROUND_REGIONS}, got {}",
-                self.background_regions
+                self.examples.background_regions
             ));
         }
         self.pyramid.validate()?;
@@ -366,8 +421,8 @@ pub fn train_joint(
     let shapes: Vec<(usize, usize)> = (0..view_labels.len())
         .map(|v| template_shape(&positives, v, params))
         .collect::<Result<_, _>>()?;
-    let mut layout = Layout::new(shapes.clone(), params.k, params.pair_mode);
-    layout.occlusion = params.occlusion;
+    let mut layout = Layout::new(shapes.clone(), params.energy.k, params.energy.pair_mode);
+    layout.occlusion = params.energy.occlusion;
     cache.fill(samples, &params.pyramid, &params.segmentation, progress)?;
     // Ground truth of every positive: the location with the best box IoU.
     let zero = layout.to_views(&vec![0.0; layout.len]);
@@ -443,8 +498,8 @@ fn model_meta(
         format_version: FORMAT_VERSION,
         name: name.to_string(),
         cell_size: CELL_SIZE,
-        hop_k: params.k,
-        pairwise: params.pair_mode,
+        hop_k: params.energy.k,
+        pairwise: params.energy.pair_mode,
         pyramid: params.pyramid,
         cells: params.pyramid.features.fingerprint()?,
         segmentation: params.segmentation,

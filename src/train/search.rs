@@ -51,9 +51,9 @@ pub(super) fn search(
                     bbox: t.bbox,
                     visible: &t.visible,
                 }),
-                kind: params.loss,
-                seg_weight: if params.occlusion {
-                    params.seg_weight
+                kind: params.energy.loss,
+                seg_weight: if params.energy.occlusion {
+                    params.energy.seg_weight
                 } else {
                     0.0
                 },
@@ -98,8 +98,8 @@ pub(super) fn search(
                         &psi,
                         ex.weight,
                         &mut g,
-                        params.hop,
-                        params.pairwise,
+                        params.energy.hop,
+                        params.energy.pairwise,
                     );
                     let grid = det.grid(&ex.pyr, &b.location);
                     let loss = match &background {
@@ -170,9 +170,9 @@ pub(super) fn search(
             }
             ex.cache.insert(0, l);
         }
-        if ex.cache.len() > params.cache_size {
+        if ex.cache.len() > params.solver.cache_size {
             let keep_truth = ex.truth.as_ref().map(|t| t.location);
-            let mut excess = ex.cache.len() - params.cache_size;
+            let mut excess = ex.cache.len() - params.solver.cache_size;
             let mut i = ex.cache.len();
             while excess > 0 && i > 0 {
                 i -= 1;

@@ -55,19 +55,19 @@ pub(super) fn cutting_plane(
         nonneg: layout.nonneg(),
     };
     let mut approx_done = false;
-    progress.set_length(params.max_passes as u64);
+    progress.set_length(params.solver.max_passes as u64);
     progress.set_position(0);
-    for pass in 0..=params.max_passes {
+    for pass in 0..=params.solver.max_passes {
         // The first pass's cached rounds start from the seeds: the
         // initialisation.
         cached_rounds(&mut st, layout, examples, params, report)?;
-        if pass == params.max_passes {
+        if pass == params.solver.max_passes {
             break;
         }
         // Budgeted searches mine hard examples cheaply while the weights
         // still move; exact ones decide convergence (or the mining search
         // does, without `exact_check`).
-        let exact = pass >= params.mining_passes || approx_done;
+        let exact = pass >= params.solver.mining_passes || approx_done;
         let round = full_search(&st, layout, examples, params, exact, report)?;
         let viol = st.violation(&round.plane);
         progress.inc(1);
@@ -78,7 +78,7 @@ pub(super) fn cutting_plane(
             round.loss
         ));
         if converged(viol, st.xi, params) {
-            if exact || !params.exact_check {
+            if exact || !params.solver.exact_check {
                 report.converged = true;
                 break;
             }
@@ -104,7 +104,7 @@ fn cached_rounds(
     params: &TrainParams,
     report: &mut TrainReport,
 ) -> Result<(), TrainError> {
-    for _ in 0..params.max_inner {
+    for _ in 0..params.solver.max_inner {
         let views = layout.to_views(&st.w);
         let det = Detector::new(&views)?;
         let t = Instant::now();
@@ -112,7 +112,7 @@ fn cached_rounds(
         report.cached_seconds += t.elapsed().as_secs_f64();
         let viol = st.violation(&round.plane);
         report.iterations += 1;
-        if viol <= st.xi + params.epsilon * 0.5 {
+        if viol <= st.xi + params.solver.epsilon * 0.5 {
             break;
         }
         let t = Instant::now();
@@ -136,7 +136,7 @@ fn full_search(
     let views = layout.to_views(&st.w);
     let det = Detector::new(&views)?;
     let t = Instant::now();
-    let budget = (!exact).then_some(params.mining_budget);
+    let budget = (!exact).then_some(params.solver.mining_budget);
     let round = search::search(&det, layout, examples, params, true, budget)?;
     report.full_seconds += t.elapsed().as_secs_f64();
     if exact {
@@ -150,7 +150,7 @@ fn full_search(
 
 /// Whether a full search's violation is within `epsilon` of the slack.
 fn converged(violation: f64, xi: f64, params: &TrainParams) -> bool {
-    violation <= xi + params.epsilon
+    violation <= xi + params.solver.epsilon
 }
 
 /// Adds `plane` to the working set and solves the QP again.
@@ -161,7 +161,7 @@ fn update(
     report: &mut TrainReport,
 ) -> Result<(), TrainError> {
     st.ws.add(plane);
-    let sol = st.ws.solve(params.c, &st.nonneg)?;
+    let sol = st.ws.solve(params.solver.c, &st.nonneg)?;
     st.w = sol.w;
     st.xi = sol.xi;
     report.objective.push(sol.objective);

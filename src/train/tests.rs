@@ -76,3 +76,35 @@ fn small_boxes_get_larger_templates_and_upsampled_levels() {
     assert!(p.template_scale <= 4.0 && p.pyramid.max_scale <= 4.0);
     p.validate().unwrap();
 }
+
+#[test]
+fn grouped_settings_read_and_write_flat_json() {
+    // A `--config` file names the settings flat, whatever their group.
+    let p: TrainParams = serde_json::from_value(serde_json::json!({
+        "c": 3.0, "k": 2, "max_passes": 7, "seed": 9, "template_scale": 1.5
+    }))
+    .unwrap();
+    assert_eq!(p.solver.c, 3.0);
+    assert_eq!(p.energy.k, 2);
+    assert_eq!(p.solver.max_passes, 7);
+    assert_eq!(p.examples.seed, 9);
+    assert_eq!(p.template_scale, 1.5);
+    assert_eq!(p.energy.loss, TrainParams::default().energy.loss);
+    // Written flat as a model's provenance records it, and read back.
+    let v = serde_json::to_value(&p).unwrap();
+    for key in [
+        "c",
+        "k",
+        "max_passes",
+        "seed",
+        "positive_share",
+        "pair_mode",
+    ] {
+        assert!(v.get(key).is_some(), "{key} missing from {v}");
+    }
+    for group in ["energy", "solver", "examples", "renders"] {
+        assert!(v.get(group).is_none(), "{group} in {v}");
+    }
+    let back: TrainParams = serde_json::from_value(v).unwrap();
+    assert_eq!(back, p);
+}

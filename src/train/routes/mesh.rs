@@ -367,7 +367,7 @@ pub fn mesh_params(s: &MeshSettings) -> Result<TrainParams, RouteError> {
         params.max_truncation = 0.0;
     }
     // With `photos`: the boxes' share of the positives' weight.
-    params.box_share = s.photo_share;
+    params.examples.box_share = s.photo_share;
     params.validate().map_err(RouteError::input)?;
     Ok(params)
 }

@@ -215,10 +215,10 @@ pub fn photo_params(
 ) -> TrainParams {
     let mut params = params_for(params, &route.sources, st.threshold.is_some());
     if !route.renders.is_empty() {
-        params.renders = route.renders.clone();
+        params.examples.renders = route.renders.clone();
     }
     if st.background_regions.is_none() && st.config.is_none() {
-        params.background_regions = COCO_BACKGROUND_REGIONS;
+        params.examples.background_regions = COCO_BACKGROUND_REGIONS;
     }
     if !st.scales_set() {
         // The photographs' boxes set the scales, not the renders': a
@@ -238,7 +238,7 @@ pub fn photo_params(
             // AUC 0.256, segmentation error 0.688; converged after
             // 13, 0.271 and 0.426; 93 s against 155 s).
             if st.max_passes.is_none() {
-                p.max_passes = SMALL_OBJECT_PASSES;
+                p.solver.max_passes = SMALL_OBJECT_PASSES;
             }
             eprintln!(
                 "{cat}: small objects: template scale {:.2} (about {:.0} cells along the median box's longer side), pyramid {:.2}..{:.2} at {} levels per octave, up to {} passes",
@@ -247,19 +247,19 @@ pub fn photo_params(
                 p.pyramid.min_scale,
                 p.pyramid.max_scale,
                 p.pyramid.levels_per_octave,
-                p.max_passes
+                p.solver.max_passes
             );
             params = p;
         }
     }
     if route.mining {
         if st.mining_passes.is_none() {
-            params.mining_passes = params.max_passes;
+            params.solver.mining_passes = params.solver.max_passes;
         }
         if st.mining_budget.is_none() {
-            params.mining_budget = MINING_BUDGET;
+            params.solver.mining_budget = MINING_BUDGET;
         }
-        params.exact_check = st.exact_check;
+        params.solver.exact_check = st.exact_check;
     }
     params
 }
@@ -329,8 +329,8 @@ pub fn fold_check(
 fn fold_params(params: &TrainParams, route: &BoxRoute) -> TrainParams {
     let mut p = params.clone();
     if let Some(most) = route.box_fold_passes {
-        p.max_passes = p.max_passes.min(most);
-        p.mining_passes = p.mining_passes.min(most);
+        p.solver.max_passes = p.solver.max_passes.min(most);
+        p.solver.mining_passes = p.solver.mining_passes.min(most);
     }
     p
 }
@@ -550,7 +550,7 @@ mod tests {
             alone.pyramid.max_scale
         );
         // Mining where the flags leave it open.
-        assert_eq!(with.mining_budget, MINING_BUDGET);
+        assert_eq!(with.solver.mining_budget, MINING_BUDGET);
     }
 
     #[test]
@@ -564,18 +564,25 @@ mod tests {
             renders: Default::default(),
             mining: true,
         };
-        let full = TrainParams {
-            max_passes: 15,
-            mining_passes: 15,
-            ..TrainParams::default()
-        };
+        let mut full = TrainParams::default();
+        full.solver.max_passes = 15;
+        full.solver.mining_passes = 15;
         let capped = fold_params(&full, &route(Some(8)));
-        assert_eq!((capped.max_passes, capped.mining_passes), (8, 8));
+        assert_eq!(
+            (capped.solver.max_passes, capped.solver.mining_passes),
+            (8, 8)
+        );
         // Never more than the full training's.
         let loose = fold_params(&full, &route(Some(30)));
-        assert_eq!((loose.max_passes, loose.mining_passes), (15, 15));
+        assert_eq!(
+            (loose.solver.max_passes, loose.solver.mining_passes),
+            (15, 15)
+        );
         let same = fold_params(&full, &route(None));
-        assert_eq!((same.max_passes, same.mining_passes), (15, 15));
+        assert_eq!(
+            (same.solver.max_passes, same.solver.mining_passes),
+            (15, 15)
+        );
         assert_eq!(same.template_scale, full.template_scale);
     }
 }

@@ -152,10 +152,10 @@ impl TrainSettings {
             }
         };
         if let Some(v) = self.c {
-            p.c = v;
+            p.solver.c = v;
         }
         if let Some(v) = self.k {
-            p.k = v;
+            p.energy.k = v;
         }
         if let Some(v) = self.template_scale {
             p.template_scale = v;
@@ -179,40 +179,40 @@ impl TrainSettings {
             p.segmentation.k = v;
         }
         if let Some(v) = self.epsilon {
-            p.epsilon = v;
+            p.solver.epsilon = v;
         }
         if let Some(v) = self.max_passes {
-            p.max_passes = v;
+            p.solver.max_passes = v;
         }
         if let Some(v) = self.max_inner {
-            p.max_inner = v;
+            p.solver.max_inner = v;
         }
         if let Some(v) = self.mining_budget {
-            p.mining_budget = v;
+            p.solver.mining_budget = v;
         }
         if let Some(v) = self.mining_passes {
-            p.mining_passes = v;
+            p.solver.mining_passes = v;
         }
         if let Some(v) = self.cache_size {
-            p.cache_size = v;
+            p.solver.cache_size = v;
         }
         if let Some(v) = self.seed {
-            p.seed = v;
+            p.examples.seed = v;
         }
         if let Some(v) = self.background_regions {
-            p.background_regions = v;
+            p.examples.background_regions = v;
         }
         if let Some(v) = self.loss {
-            p.loss = v;
+            p.energy.loss = v;
         }
         if let Some(v) = self.threshold {
             p.threshold = v;
         }
-        p.hop &= !self.no_hop;
-        p.pairwise &= !self.no_pairwise;
-        p.occlusion &= !self.no_occlusion;
+        p.energy.hop &= !self.no_hop;
+        p.energy.pairwise &= !self.no_pairwise;
+        p.energy.occlusion &= !self.no_occlusion;
         if self.edge_pairwise {
-            p.pair_mode = PairwiseMode::Edges;
+            p.energy.pair_mode = PairwiseMode::Edges;
         }
         p.validate().map_err(RouteError::input)?;
         if let Some(t) = self.threads {
