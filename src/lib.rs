@@ -16,6 +16,7 @@ pub mod infer;
 pub mod model;
 pub mod pipeline;
 pub mod pose;
+pub mod progress;
 pub mod synth;
 pub mod train;
 pub mod vision;

@@ -20,8 +20,7 @@ use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
 use crate::pose::api::{estimate, MaskSource, PoseParams};
 use crate::pose::geometry::Pose;
 use crate::pose::Mesh;
-use crate::train::progress_bar;
-use crate::train::routes::load_model_dir;
+use crate::progress::progress_bar;
 use crate::vision::detect::box_iou;
 
 /// Why a folder of models could not be scored.
@@ -182,7 +181,11 @@ pub fn evaluate(
     transfer: bool,
     meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
 ) -> Result<Variant, RunError> {
-    let models = load_model_dir(dir).map_err(RunError::input)?;
+    let models = crate::model::model_paths(dir)
+        .map_err(RunError::input)?
+        .iter()
+        .map(|p| Model::load(p).map_err(|e| RunError::input(format!("{}: {e}", p.display()))))
+        .collect::<Result<Vec<_>, _>>()?;
     let refs: Vec<&Model> = models.iter().collect();
     let labels = annotated_labels(&models, bop, dir)?;
     let opts = DetectOptions {

@@ -441,3 +441,17 @@ pub use file::content_digest;
 
 #[cfg(test)]
 mod tests;
+
+/// The `*.safetensors` files of a folder, sorted by name.
+pub fn model_paths(dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>, ModelError> {
+    let mut found: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .map_err(|source| ModelError::Io {
+            path: dir.display().to_string(),
+            source,
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
+        .collect();
+    found.sort();
+    Ok(found)
+}

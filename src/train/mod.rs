@@ -43,7 +43,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -63,6 +63,7 @@ use crate::vision::VisionError;
 use loss::LossKind;
 use qp::Plane;
 
+pub use crate::progress::progress_bar;
 pub use cache::PyramidCache;
 pub use layout::{exact_concave, Layout, PLAIN_HOG_PRIOR};
 pub use scales::small_object_scales;
@@ -623,18 +624,6 @@ fn template_shape(
     let cols = (median(&mut ws) * s).round().max(1.0) as usize;
     let rows = (median(&mut hs) * s).round().max(1.0) as usize;
     Ok((rows, cols))
-}
-
-/// A progress bar in the style used across the CLI (hidden when not a TTY).
-pub fn progress_bar(len: u64, what: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    if let Ok(style) =
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
-    {
-        pb.set_style(style);
-    }
-    pb.set_message(what.to_string());
-    pb
 }
 
 #[cfg(test)]

@@ -128,13 +128,7 @@ pub fn background_image(
 
 /// The `*.safetensors` files of a folder, sorted.
 pub fn model_paths(dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>, RouteError> {
-    let mut found: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| RouteError::io(format!("{}: {e}", dir.display())))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|x| x == "safetensors"))
-        .collect();
-    found.sort();
-    Ok(found)
+    crate::model::model_paths(dir).map_err(RouteError::io)
 }
 
 /// The models of a folder, sorted by file name.
