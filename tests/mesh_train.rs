@@ -600,3 +600,63 @@ fn mesh_with_box_photographs_trains_them_beside_renders_drawn_over_them() {
     assert!(hits >= 14, "{hits} of 20 new renders found");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The mesh route is a library function: called without the binary, with
+/// its settings' defaults and a few overrides, it trains the same kind of
+/// model the command saves; settings that cannot train are refused before
+/// any work, as bad input.
+#[test]
+fn the_mesh_route_trains_from_the_library_and_refuses_bad_settings() {
+    use sdhop::train::routes::mesh::{train_mesh, MeshSettings};
+    use sdhop::train::routes::{RouteError, TrainSettings};
+    let dir = std::env::temp_dir().join(format!("sdhop-mesh-lib-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let ply = dir.join("box.ply");
+    std::fs::write(&ply, coloured_box_ply()).unwrap();
+    let bgs = dir.join("bg");
+    write_backgrounds(&bgs, 6);
+    let settings = MeshSettings {
+        mesh: vec![ply.clone()],
+        name: vec!["box".into()],
+        backgrounds: Some(bgs.clone()),
+        work: Some(dir.join("work")),
+        renders: Some(24),
+        components: 2,
+        negatives: 4,
+        settings: TrainSettings {
+            max_passes: Some(2),
+            ..TrainSettings::default()
+        },
+        ..MeshSettings::default()
+    };
+    let trained = train_mesh(&settings).unwrap();
+    assert_eq!(trained.name, "box");
+    assert_eq!(trained.model.meta.viewpoints.len(), 2);
+    assert!(trained
+        .model
+        .meta
+        .viewpoints
+        .iter()
+        .all(|v| v.direction.is_some()));
+    // The mesh route's defaults, stated beside it, reached the model.
+    assert_eq!(trained.model.meta.pyramid.levels_per_octave, 5);
+    assert!((trained.model.meta.pyramid.max_scale - 2.5).abs() < 1e-6);
+    assert!(trained.report.passes <= 2);
+    let refused = |s: MeshSettings| match train_mesh(&s) {
+        Err(RouteError::Input(m)) => m,
+        Err(e) => panic!("not an input error: {e}"),
+        Ok(_) => panic!("trained with bad settings"),
+    };
+    let msg = refused(MeshSettings {
+        name: vec!["box".into(), "other".into()],
+        ..settings.clone()
+    });
+    assert!(msg.contains("one name per mesh"), "{msg}");
+    let msg = refused(MeshSettings {
+        backgrounds: None,
+        ..settings.clone()
+    });
+    assert!(msg.contains("--backgrounds"), "{msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -2,6 +2,7 @@
 //! choosing C; AUC and segmentation errors.
 
 use super::*;
+use crate::train::routes::cv::{cross_validate_route, CvSettings};
 
 #[derive(clap::Args)]
 pub(crate) struct CvArgs {
@@ -10,7 +11,7 @@ pub(crate) struct CvArgs {
     pub(crate) ko8: PathBuf,
     #[arg(long, value_delimiter = ',')]
     pub(crate) objects: Vec<String>,
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = CvSettings::default().folds)]
     pub(crate) folds: usize,
     /// Values of C to compare (the best mean cross-object AUC wins).
     #[arg(long, value_delimiter = ',', allow_negative_numbers = false)]
@@ -19,7 +20,7 @@ pub(crate) struct CvArgs {
     #[arg(long, default_value = "out/cv")]
     pub(crate) out: PathBuf,
     /// Detections kept per image (as the acceptance procedure asks).
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = CvSettings::default().max_detections)]
     pub(crate) max_detections: usize,
     /// Run only these folds (numbered from 0; all by default).
     #[arg(long, value_delimiter = ',')]
@@ -47,7 +48,7 @@ pub(crate) struct CvArgs {
     /// How much of the selection figure (mean cross-object AUC less a tenth
     /// of the refined segmentation error) a higher, faster threshold may
     /// give up.
-    #[arg(long, default_value_t = 0.002)]
+    #[arg(long, default_value_t = CvSettings::default().threshold_tolerance)]
     pub(crate) threshold_tolerance: f64,
     #[command(flatten)]
     pub(crate) settings: TrainSettings,
@@ -92,89 +93,33 @@ pub(crate) fn write_evaluation(
     Ok(())
 }
 
-/// The best cross-validation so far: its key, report, figures, image ids
-/// and responses.
-pub(crate) type BestCv = (
-    f64,
-    serde_json::Value,
-    Evaluation,
-    Vec<String>,
-    Vec<DetectResponse>,
-);
-
 pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
-    let (mut params, neg) = args.settings.params(FeatureKind::Hog)?;
-    if args.folds < 2 {
-        return Err(Failure::input("--folds must be at least 2"));
-    }
-    let data = Ko8Data::load(&args.ko8, &args.objects).map_err(Failure::input)?;
-    let cache = PyramidCache::default();
-    let cs = if args.c_values.is_empty() {
-        vec![params.solver.c]
-    } else {
-        args.c_values.clone()
+    let route = CvSettings {
+        ko8: args.ko8.clone(),
+        objects: args.objects.clone(),
+        folds: args.folds,
+        only_folds: args.only_folds.clone(),
+        c_values: args.c_values.clone(),
+        save_models: args.save_models.clone(),
+        load_models: args.load_models.clone(),
+        max_detections: args.max_detections,
+        detect_threshold: args.detect_threshold,
+        pixel_refine: args
+            .pixel_refine
+            .as_deref()
+            .map(parse_pixel_refine)
+            .transpose()?,
+        threshold_tolerance: args.threshold_tolerance,
     };
-    let mut best: Option<BestCv> = None;
-    let mut summary = Vec::new();
-    for &c in &cs {
-        params.solver.c = c;
-        let t = std::time::Instant::now();
-        // With several values of C, each keeps its models in DIR/c-C.
-        let per_c = |d: &Path| {
-            if cs.len() > 1 {
-                d.join(format!("c-{c}"))
-            } else {
-                d.to_path_buf()
-            }
-        };
-        let (save, load) = (
-            args.save_models.as_deref().map(per_c),
-            args.load_models.as_deref().map(per_c),
-        );
-        let source = match (&save, &load) {
-            (_, Some(d)) => FoldModels::Load(d),
-            (Some(d), None) => FoldModels::TrainAndSave(d),
-            (None, None) => FoldModels::Train,
-        };
-        let how = EvalDetect {
-            max_detections: args.max_detections,
-            threshold: args.detect_threshold,
-            pixel: args
-                .pixel_refine
-                .as_deref()
-                .map(parse_pixel_refine)
-                .transpose()?,
-        };
-        let cv = cross_validate(
-            &data,
-            args.folds,
-            &args.only_folds,
-            &params,
-            &neg,
-            &cache,
-            how,
-            source,
-        )
-        .map_err(Failure::input)?;
-        let secs = t.elapsed().as_secs_f64();
-        // Thresholds at or above the one detection ran with, scored on the
-        // same responses; the highest that keeps (nearly) the best figures.
-        let floor = args.detect_threshold.unwrap_or(params.threshold);
-        let grid: Vec<f64> = (0..)
-            .map(|i| floor + 0.125 * f64::from(i))
-            .take_while(|t| *t <= 1.0 + 1e-9)
-            .collect();
-        let refs: Vec<&Sample> = cv.images.iter().collect();
-        let sweep = threshold_sweep(&data, &refs, &cv.responses, &grid);
-        let chosen =
-            choose_threshold(&sweep, args.threshold_tolerance).map_or(floor, |t| t.threshold);
-        let responses = above_threshold(&cv.responses, chosen);
-        let evaluation = score(&data, &refs, &responses);
+    let outcome = cross_validate_route(&route, &args.settings, |r| {
         println!(
-            "C = {c} ({secs:.0} s), threshold {chosen}\n{}",
-            crate::eval::table(&evaluation.objects, true)
+            "C = {} ({:.0} s), threshold {}\n{}",
+            r.c,
+            r.seconds,
+            r.threshold,
+            crate::eval::table(&r.evaluation.objects, true)
         );
-        for t in &sweep {
+        for t in &r.sweep {
             println!(
                 "  threshold {:6.3}: AUC {:.3}, cross {:.3}, seg refined {:.4}, raw {:.4}",
                 t.threshold,
@@ -184,61 +129,19 @@ pub(crate) fn run_cv(args: &CvArgs) -> Result<(), Failure> {
                 t.mean.seg_error_raw
             );
         }
-        summary.push(serde_json::json!({
-            "c": c,
-            "threshold": chosen,
-            "mean": evaluation.mean,
-            "seconds": secs,
-            "threshold_search": sweep,
-        }));
-        let key = selection_key(&evaluation.mean);
-        if best.as_ref().is_none_or(|b| key > b.0) {
-            let report = serde_json::json!({
-                "folds": args.folds,
-                "only_folds": args.only_folds,
-                "c": c,
-                "threshold": chosen,
-                "detect_threshold": floor,
-                "max_detections": args.max_detections,
-                "params": params,
-                "negatives": neg,
-                "evaluation": strip_curves(&evaluation),
-                "train_reports": cv.reports,
-            });
-            let ids = cv.images.iter().map(|s| s.id.clone()).collect();
-            best = Some((key, report, evaluation, ids, responses));
-        }
-    }
-    let Some((_, mut report, evaluation, ids, responses)) = best else {
-        return Err(Failure::input("no value of C to try"));
-    };
-    report["c_search"] = serde_json::Value::Array(summary);
-    let ids: Vec<&str> = ids.iter().map(|s| s.as_str()).collect();
+    })?;
     println!(
         "chosen C = {}, threshold = {}",
-        report["c"], report["threshold"]
+        outcome.report["c"], outcome.report["threshold"]
     );
+    let ids: Vec<&str> = outcome.ids.iter().map(String::as_str).collect();
     write_evaluation(
         &args.out,
         &ids,
-        &responses,
-        &report,
-        &evaluation,
+        &outcome.responses,
+        &outcome.report,
+        &outcome.evaluation,
         &args.ko8,
         Part::Single,
     )
-}
-
-pub(crate) fn strip_curves(e: &Evaluation) -> serde_json::Value {
-    let mut e = e.clone();
-    for o in &mut e.objects {
-        o.curve = thin(&o.curve);
-        o.curve_cross = thin(&o.curve_cross);
-    }
-    serde_json::to_value(e).unwrap_or_default()
-}
-
-/// Every tenth point of a 1001-point curve (FPPI 0, 0.01, ..., 1).
-pub(crate) fn thin(c: &[f64]) -> Vec<f64> {
-    c.iter().step_by(10).copied().collect()
 }

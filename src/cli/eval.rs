@@ -95,7 +95,7 @@ pub(crate) fn run_eval(args: &EvalArgs) -> Result<(), Failure> {
         "features": feature_kinds(&models),
         "part": args.part.name(),
         "images": images.len(),
-        "evaluation": strip_curves(&evaluation),
+        "evaluation": crate::train::routes::cv::strip_curves(&evaluation),
     });
     println!(
         "{} model(s), {} features, {} photographs",

@@ -24,7 +24,6 @@ mod upgrade;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use crate::data::Sample;
 use crate::model::Model;
 use crate::pipeline::{
     detect_image, overlay, DetectOptions, DetectResponse, MaskMode, DEFAULT_MAX_PIXELS,
@@ -32,14 +31,10 @@ use crate::pipeline::{
 use clap::{Parser, Subcommand};
 
 use crate::synth::{hand_model, scene, HandModelParams, SceneParams, SynthObject};
-use crate::train::ko8::{
-    above_threshold, choose_threshold, cross_validate, detect_all, score, selection_key,
-    threshold_sweep, EvalDetect, Evaluation, FoldModels, Ko8Data,
-};
+use crate::train::ko8::{detect_all, score, EvalDetect, Evaluation, Ko8Data};
 
 use crate::train::routes::{add_cv_figures, background_image, image_files, TrainSettings};
 use crate::train::{progress_bar, PyramidCache};
-use crate::vision::cells::FeatureKind;
 use crate::vision::detect::box_iou;
 use crate::vision::image::ColorImage;
 use crate::vision::mask::Mask;

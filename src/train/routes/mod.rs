@@ -10,10 +10,10 @@
 //! | a COCO file of your photographs (masks, boxes or both) | [`coco::train_coco`] |
 //! | a mesh alone, or a mesh and boxed photographs | [`mesh::train_mesh`] |
 //! | two models of an object to join | [`join::join_models`] |
-//!
-//! Cross-validation over CMU_KO8 is [`crate::train::ko8::cross_validate`].
+//! | a choice of settings to check on CMU_KO8 | [`cv::cross_validate_route`] |
 
 pub mod coco;
+pub mod cv;
 pub mod join;
 pub mod ko8;
 pub mod mesh;
