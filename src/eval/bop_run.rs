@@ -34,6 +34,15 @@ impl RunError {
     }
 }
 
+/// The models of a folder, each error naming its file.
+fn load_models(dir: &Path) -> Result<Vec<Model>, RunError> {
+    crate::model::model_paths(dir)
+        .map_err(RunError::input)?
+        .iter()
+        .map(|p| Model::load(p).map_err(|e| RunError::input(format!("{}: {e}", p.display()))))
+        .collect()
+}
+
 /// How the photographs are scanned and the poses found.
 #[derive(Clone, Copy, Debug)]
 pub struct ScanSettings {
@@ -181,11 +190,7 @@ pub fn evaluate(
     transfer: bool,
     meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
 ) -> Result<Variant, RunError> {
-    let models = crate::model::model_paths(dir)
-        .map_err(RunError::input)?
-        .iter()
-        .map(|p| Model::load(p).map_err(|e| RunError::input(format!("{}: {e}", p.display()))))
-        .collect::<Result<Vec<_>, _>>()?;
+    let models = load_models(dir)?;
     let refs: Vec<&Model> = models.iter().collect();
     let labels = annotated_labels(&models, bop, dir)?;
     let opts = DetectOptions {
