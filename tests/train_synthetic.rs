@@ -17,6 +17,25 @@ use sdhop::vision::energy::hop_curvature;
 use sdhop::vision::mask::Mask;
 use sdhop::vision::pyramid::FeaturePyramid;
 
+/// Training settings for the synthetic scenes: templates at the median
+/// box, at most `passes` full searches of which the first `mining` mine,
+/// `seeds` random locations per image.
+fn short_params(passes: usize, mining: usize, seeds: usize) -> TrainParams {
+    TrainParams {
+        template_scale: 1.0,
+        solver: SolverParams {
+            max_passes: passes,
+            mining_passes: mining,
+            ..Default::default()
+        },
+        examples: ExampleParams {
+            init_locations: seeds,
+            ..Default::default()
+        },
+        ..TrainParams::default()
+    }
+}
+
 const OBJECT: SynthObject = SynthObject {
     cols: 9,
     rows: 8,
@@ -82,19 +101,7 @@ fn held_out_hits(model: &Model, n: u64) -> u64 {
 
 #[test]
 fn training_learns_to_detect_and_segment_held_out_scenes() {
-    let params = TrainParams {
-        template_scale: 1.0,
-        solver: SolverParams {
-            max_passes: 6,
-            mining_passes: 3,
-            ..Default::default()
-        },
-        examples: ExampleParams {
-            init_locations: 20,
-            ..Default::default()
-        },
-        ..TrainParams::default()
-    };
+    let params = short_params(6, 3, 20);
     let cache = PyramidCache::default();
     let mut samples = Vec::new();
     for seed in 0..14 {
@@ -185,19 +192,7 @@ fn training_learns_to_detect_and_segment_held_out_scenes() {
 /// trips, and finds held-out scenes' objects.
 #[test]
 fn training_on_learned_cells_detects_held_out_scenes() {
-    let mut params = TrainParams {
-        template_scale: 1.0,
-        solver: SolverParams {
-            max_passes: 4,
-            mining_passes: 2,
-            ..Default::default()
-        },
-        examples: ExampleParams {
-            init_locations: 20,
-            ..Default::default()
-        },
-        ..TrainParams::default()
-    };
+    let mut params = short_params(4, 2, 20);
     params.pyramid.features = FeatureKind::Cnn;
     let cache = PyramidCache::default();
     let mut samples = Vec::new();
@@ -273,19 +268,7 @@ fn training_cli_refuses_bad_input_with_status_2() {
 /// never reads the image or the per-pixel segments.
 #[test]
 fn lean_pyramids_train_the_same_weights() {
-    let params = TrainParams {
-        template_scale: 1.0,
-        solver: SolverParams {
-            max_passes: 2,
-            mining_passes: 1,
-            ..Default::default()
-        },
-        examples: ExampleParams {
-            init_locations: 10,
-            ..Default::default()
-        },
-        ..TrainParams::default()
-    };
+    let params = short_params(2, 1, 10);
     let full = PyramidCache::default();
     let lean = PyramidCache::lean();
     let mut samples = Vec::new();
@@ -320,19 +303,7 @@ fn lean_pyramids_train_the_same_weights() {
 #[test]
 fn box_correction_is_fitted_on_held_out_scenes_and_applied_to_every_box() {
     use sdhop::train::box_correction;
-    let params = TrainParams {
-        template_scale: 1.0,
-        solver: SolverParams {
-            max_passes: 4,
-            mining_passes: 2,
-            ..Default::default()
-        },
-        examples: ExampleParams {
-            init_locations: 20,
-            ..Default::default()
-        },
-        ..TrainParams::default()
-    };
+    let params = short_params(4, 2, 20);
     let cache = PyramidCache::default();
     let mut samples = Vec::new();
     for seed in 0..20 {

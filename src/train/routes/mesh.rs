@@ -429,6 +429,11 @@ impl MeshSettings {
                 "--from-views trains one object per model: run it once per --mesh",
             ));
         }
+        if self.from_views && self.photos.is_some() {
+            return Err(RouteError::input(
+                "--from-views and --photos are two routes: give one",
+            ));
+        }
         if self.fold_passes == 0 {
             return Err(RouteError::input("--fold-passes must be at least 1"));
         }
@@ -579,8 +584,8 @@ fn train_route(
     };
     let pb = progress_bar(0, &format!("{model_name}: training"));
     let samples = &rendered.samples;
-    let trained = if let (Some(photos), true) = (photos, s.boxes_route()) {
-        let route = train_with_photo_boxes(
+    let imputing = match photos {
+        Some(photos) if s.boxes_route() => Some(train_with_photo_boxes(
             &s.name[0],
             photos,
             samples,
@@ -591,12 +596,8 @@ fn train_route(
             &cache,
             params,
             &pb,
-        )?;
-        rendered.directions = route.directions;
-        rendered.rotations = route.rotations;
-        (route.model, route.report)
-    } else if s.from_views {
-        let views_route = train_from_views(
+        )?),
+        _ if s.from_views => Some(train_from_views(
             &objects[0],
             samples,
             &rendered.poses,
@@ -606,10 +607,15 @@ fn train_route(
             &cache,
             params,
             &pb,
-        )?;
-        rendered.directions = views_route.directions;
-        rendered.rotations = views_route.rotations;
-        (views_route.model, views_route.report)
+        )?),
+        _ => None,
+    };
+    let trained = if let Some(route) = imputing {
+        // The components' directions and start rotations are those of the
+        // renders the route imputed to them.
+        rendered.directions = route.directions;
+        rendered.rotations = route.rotations;
+        (route.model, route.report)
     } else if let Some(photos) = photos {
         renders_first(s, photos, samples, negatives, &cache, params, &pb)?
     } else {

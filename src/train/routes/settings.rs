@@ -151,63 +151,27 @@ impl TrainSettings {
                 p
             }
         };
-        if let Some(v) = self.c {
-            p.solver.c = v;
-        }
-        if let Some(v) = self.k {
-            p.energy.k = v;
-        }
-        if let Some(v) = self.template_scale {
-            p.template_scale = v;
-        }
+        set(&mut p.solver.c, self.c);
+        set(&mut p.energy.k, self.k);
+        set(&mut p.template_scale, self.template_scale);
         if self.template.is_some() {
             p.template = self.template;
         }
-        if let Some(v) = self.features {
-            p.pyramid.features = v;
-        }
-        if let Some(v) = self.levels_per_octave {
-            p.pyramid.levels_per_octave = v;
-        }
-        if let Some(v) = self.min_scale {
-            p.pyramid.min_scale = v;
-        }
-        if let Some(v) = self.max_scale {
-            p.pyramid.max_scale = v;
-        }
-        if let Some(v) = self.seg_k {
-            p.segmentation.k = v;
-        }
-        if let Some(v) = self.epsilon {
-            p.solver.epsilon = v;
-        }
-        if let Some(v) = self.max_passes {
-            p.solver.max_passes = v;
-        }
-        if let Some(v) = self.max_inner {
-            p.solver.max_inner = v;
-        }
-        if let Some(v) = self.mining_budget {
-            p.solver.mining_budget = v;
-        }
-        if let Some(v) = self.mining_passes {
-            p.solver.mining_passes = v;
-        }
-        if let Some(v) = self.cache_size {
-            p.solver.cache_size = v;
-        }
-        if let Some(v) = self.seed {
-            p.examples.seed = v;
-        }
-        if let Some(v) = self.background_regions {
-            p.examples.background_regions = v;
-        }
-        if let Some(v) = self.loss {
-            p.energy.loss = v;
-        }
-        if let Some(v) = self.threshold {
-            p.threshold = v;
-        }
+        set(&mut p.pyramid.features, self.features);
+        set(&mut p.pyramid.levels_per_octave, self.levels_per_octave);
+        set(&mut p.pyramid.min_scale, self.min_scale);
+        set(&mut p.pyramid.max_scale, self.max_scale);
+        set(&mut p.segmentation.k, self.seg_k);
+        set(&mut p.solver.epsilon, self.epsilon);
+        set(&mut p.solver.max_passes, self.max_passes);
+        set(&mut p.solver.max_inner, self.max_inner);
+        set(&mut p.solver.mining_budget, self.mining_budget);
+        set(&mut p.solver.mining_passes, self.mining_passes);
+        set(&mut p.solver.cache_size, self.cache_size);
+        set(&mut p.examples.seed, self.seed);
+        set(&mut p.examples.background_regions, self.background_regions);
+        set(&mut p.energy.loss, self.loss);
+        set(&mut p.threshold, self.threshold);
         p.energy.hop &= !self.no_hop;
         p.energy.pairwise &= !self.no_pairwise;
         p.energy.occlusion &= !self.no_occlusion;
@@ -234,6 +198,13 @@ pub fn parse_template(s: &str) -> Result<[usize; 2], String> {
     let r: usize = r.parse().map_err(|_| "bad rows")?;
     let c: usize = c.parse().map_err(|_| "bad cols")?;
     Ok([r, c])
+}
+
+/// `*dst = v` where a value is given.
+fn set<T>(dst: &mut T, v: Option<T>) {
+    if let Some(v) = v {
+        *dst = v;
+    }
 }
 
 impl Default for TrainSettings {
