@@ -107,6 +107,20 @@ fn print_variant(v: &Variant) {
         "{:<12} {:>6.3} {:>8.3} {:>5} {:>7.4} {:>7.4}",
         "mean", v.mean_auc, v.mean_recall_at_1fppi, "", v.mean_seg_error, v.mean_seg_error_raw
     );
+    let pct = |x: Option<f64>| x.map_or("-".to_string(), |x| format!("{:.1}", 100.0 * x));
+    println!(
+        "COCO AP (BOP 2022, {} objects): boxes AP {} AP50 {} AP75 {}; masks AP {} AP50 {} AP75 {}",
+        v.box_ap.categories,
+        pct(v.box_ap.ap),
+        pct(v.box_ap.ap50),
+        pct(v.box_ap.ap75),
+        pct(v.mask_ap.ap),
+        pct(v.mask_ap.ap50),
+        pct(v.mask_ap.ap75)
+    );
+    if let Some(r) = v.mspd_recall {
+        println!("pose from no start: BOP MSPD recall {r:.3} (5-50 px)");
+    }
     if !v.pose.is_empty() {
         println!(
             "pose from no start: {:<10} {:>4} {:>9} {:>9} {:>8} {:>8}",
@@ -323,6 +337,19 @@ fn write_report(json: &serde_json::Value, variants: &[Variant], out: &Path) -> R
         .collect();
     crate::eval::plot::variants_png(&curves, &plot).map_err(Failure::io)?;
     println!("report {}, plot {}", report.display(), plot.display());
+    // Each scored variant's detections in BOP's results format, named as
+    // the BOP toolkit parses them (METHOD_DATASET-SPLIT.json).
+    for v in variants.iter().filter(|v| !v.results.is_empty()) {
+        let method: String = v
+            .name
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() { c } else { '-' })
+            .collect();
+        let path = out.join(format!("{method}_lmo-test.json"));
+        let text = serde_json::to_string(&v.results).map_err(Failure::io)?;
+        std::fs::write(&path, text).map_err(|e| Failure::io(format!("{}: {e}", path.display())))?;
+        println!("BOP detection results {}", path.display());
+    }
     Ok(())
 }
 

@@ -346,6 +346,53 @@ pub fn add(est: &Pose, truth: &Pose, symmetries: &[Vec<f64>], points: &[Vector3<
         .fold(f64::INFINITY, f64::min)
 }
 
+/// MSPD, BOP's maximum symmetry-aware projection distance: the largest
+/// distance in pixels between `points` projected by `est` and by `truth`,
+/// the least over the symmetric poses of `truth` (infinite where a point
+/// falls behind the camera).
+pub fn mspd(
+    est: &Pose,
+    truth: &Pose,
+    symmetries: &[Vec<f64>],
+    points: &[Vector3<f64>],
+    camera: &Intrinsics,
+) -> f64 {
+    let far = |p: Option<nalgebra::Vector2<f64>>, q: Option<nalgebra::Vector2<f64>>| match (p, q) {
+        (Some(p), Some(q)) => (p - q).norm(),
+        _ => f64::INFINITY,
+    };
+    symmetric_truths(truth, symmetries)
+        .iter()
+        .map(|gt| {
+            points
+                .iter()
+                .map(|x| {
+                    far(
+                        camera.project(&est.transform(x)),
+                        camera.project(&gt.transform(x)),
+                    )
+                })
+                .fold(0.0, f64::max)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// BOP's MSPD thresholds for an image `width` pixels wide: 5, 10, ..., 50
+/// pixels times `width / 640`.
+pub fn mspd_thresholds(width: f64) -> [f64; 10] {
+    std::array::from_fn(|i| 5.0 * (i + 1) as f64 * width / 640.0)
+}
+
+/// BOP's MSPD recall: over the thresholds, the mean share of `errors`
+/// below each (a missing estimate is an infinite error).
+pub fn mspd_recall(errors: &[f64], thresholds: &[f64]) -> Option<f64> {
+    if errors.is_empty() || thresholds.is_empty() {
+        return None;
+    }
+    let share = |t: f64| errors.iter().filter(|&&e| e < t).count() as f64 / errors.len() as f64;
+    Some(thresholds.iter().map(|&t| share(t)).sum::<f64>() / thresholds.len() as f64)
+}
+
 /// A unit vector uniform on the sphere.
 fn direction(rng: &mut SplitMix64) -> Vector3<f64> {
     loop {
@@ -707,6 +754,46 @@ pub fn table(title: &str, outcomes: &[Outcome], obj: Option<u32>) -> String {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn mspd_is_the_largest_projected_distance_and_sees_symmetries() {
+        let camera = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 320.0,
+            cy: 240.0,
+        };
+        let truth = Pose {
+            rotation: Matrix3::identity(),
+            translation: Vector3::new(0.0, 0.0, 1000.0),
+        };
+        let points = vec![Vector3::new(-50.0, 0.0, 0.0), Vector3::new(50.0, 0.0, 0.0)];
+        // Moved 10 mm sideways at 1 m: every point 5 px away.
+        let moved = Pose {
+            translation: Vector3::new(10.0, 0.0, 1000.0),
+            ..truth
+        };
+        assert!((mspd(&moved, &truth, &[], &points, &camera) - 5.0).abs() < 1e-9);
+        // Turned half a turn about z: the points swap places, 50 px each
+        // way, unless the object has that symmetry.
+        let turned = Pose {
+            rotation: Matrix3::new(-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0),
+            ..truth
+        };
+        assert!((mspd(&turned, &truth, &[], &points, &camera) - 50.0).abs() < 1e-9);
+        let half_turn = vec![vec![
+            -1.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+        ]];
+        assert!(mspd(&turned, &truth, &half_turn, &points, &camera) < 1e-9);
+        // The recall over BOP's thresholds: 5 px is below 10..50 (9 of 10).
+        let t = mspd_thresholds(640.0);
+        assert_eq!(t[0], 5.0);
+        assert_eq!(t[9], 50.0);
+        let r = mspd_recall(&[5.0, f64::INFINITY], &t).unwrap();
+        assert!((r - 0.45).abs() < 1e-12, "{r}");
+        assert_eq!(mspd_recall(&[], &t), None);
+    }
+
     use super::*;
 
     #[test]

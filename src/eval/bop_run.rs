@@ -13,7 +13,10 @@ use nalgebra::Vector3;
 use crate::data::bop::{Bop, LINEMOD_NAMES};
 use crate::data::load_image;
 use crate::eval::bop_detect::{add_s, score_object, scored_instance, DetectScore};
-use crate::eval::bop_pose::{add, errors, intrinsics, truth_pose};
+use crate::eval::bop_pose::{
+    add, errors, intrinsics, mspd, mspd_recall, mspd_thresholds, truth_pose,
+};
+use crate::eval::coco_ap::{average_precision, ApFigures, Found, Truth};
 use crate::eval::feature_kinds;
 use crate::model::Model;
 use crate::pipeline::{detect_image, DetectOptions, DetectionJson, MaskMode};
@@ -32,6 +35,116 @@ impl RunError {
     pub fn input(e: impl std::fmt::Display) -> Self {
         Self(e.to_string())
     }
+}
+
+/// Width of LM-O's photographs, which scales BOP's MSPD thresholds.
+const LMO_WIDTH: f64 = 640.0;
+
+/// The BOP object id of each detection's label.
+fn category_of(labels: &[(String, u32)], label: &str) -> Option<u32> {
+    labels.iter().find(|(l, _)| l == label).map(|(_, id)| *id)
+}
+
+/// COCO AP of the boxes and of the refined masks over the scored
+/// photographs, as BOP 2022 computes it: every instance of a scored
+/// object with a visible pixel is a truth (its full-extent box, its
+/// visible mask), every detection of a scored object a detection.
+fn coco_scores(
+    bop: &Bop,
+    images: &[usize],
+    detections: &[Vec<DetectionJson>],
+    labels: &[(String, u32)],
+) -> Result<(ApFigures, ApFigures), RunError> {
+    let mut truths = Vec::new();
+    let mut found = Vec::new();
+    // Per truth and detection: its box and mask (decoded one image at a
+    // time; the overlaps are kept, not the masks).
+    let mut box_iou_of = std::collections::HashMap::new();
+    let mut mask_iou_of = std::collections::HashMap::new();
+    for &i in images {
+        let image = &bop.images[i];
+        let mut image_truths = Vec::new();
+        for g in &image.instances {
+            if labels.iter().all(|(_, id)| *id != g.obj_id) {
+                continue;
+            }
+            let mask = crate::data::load_mask(&bop.mask_visib_path(image, g.k))
+                .map_err(RunError::input)?;
+            if mask.area() == 0 {
+                continue;
+            }
+            image_truths.push((truths.len(), g.bbox_obj, mask));
+            truths.push(Truth {
+                image: i,
+                category: g.obj_id,
+            });
+        }
+        for d in &detections[i] {
+            let Some(category) = category_of(labels, &d.label) else {
+                continue;
+            };
+            let di = found.len();
+            found.push(Found {
+                image: i,
+                category,
+                score: d.score,
+            });
+            let dmask = d
+                .mask
+                .as_ref()
+                .and_then(crate::vision::mask::Mask::from_rle);
+            let dbox = (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height);
+            for (ti, tbox, tmask) in &image_truths {
+                if truths[*ti].category != category {
+                    continue;
+                }
+                let b = tbox.map_or(0.0, |b| box_iou(dbox, (b[0], b[1], b[2], b[3])));
+                box_iou_of.insert((di, *ti), b);
+                let m = dmask.as_ref().map_or(0.0, |m| m.iou(tmask));
+                mask_iou_of.insert((di, *ti), m);
+            }
+        }
+    }
+    let boxes = average_precision(&truths, &found, |d, t| {
+        box_iou_of.get(&(d, t)).copied().unwrap_or(0.0)
+    });
+    let masks = average_precision(&truths, &found, |d, t| {
+        mask_iou_of.get(&(d, t)).copied().unwrap_or(0.0)
+    });
+    Ok((boxes, masks))
+}
+
+/// The detections of the scored photographs in BOP's results format
+/// (`eval_bop22_coco.py`): the full-extent box, the refined visible mask
+/// as compressed RLE, and the photograph's detection time in seconds
+/// (`seconds`, by image index).
+fn bop_results(
+    bop: &Bop,
+    images: &[usize],
+    detections: &[Vec<DetectionJson>],
+    labels: &[(String, u32)],
+    seconds: &[f64],
+) -> Vec<serde_json::Value> {
+    let mut out = Vec::new();
+    for &i in images {
+        let image = &bop.images[i];
+        let scene: u64 = image.scene.trim_start_matches('0').parse().unwrap_or(0);
+        for d in &detections[i] {
+            let Some(category) = category_of(labels, &d.label) else {
+                continue;
+            };
+            out.push(serde_json::json!({
+                "scene_id": scene,
+                "image_id": image.id,
+                "category_id": category,
+                "score": d.score,
+                "bbox": [d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height],
+                "segmentation": d.mask.as_ref().map(|m| m.compress()),
+                "time": seconds[i],
+            }));
+        }
+    }
+    out
 }
 
 /// The models of a folder, each error naming its file.
@@ -104,6 +217,9 @@ pub struct PoseOutcome {
     pub nearest_rotation: Option<f64>,
     #[serde(default)]
     pub nearest_rotation_any: Option<f64>,
+    /// BOP's MSPD of the answer (pixels; `None`: no pose).
+    #[serde(default)]
+    pub mspd: Option<f64>,
 }
 
 /// One variant's figures.
@@ -120,8 +236,23 @@ pub struct Variant {
     pub mean_seg_error_raw: f64,
     pub mean_recall_at_1fppi: f64,
     pub detect_ms_per_image: f64,
+    /// COCO AP of the boxes (full extent, BOP's amodal boxes) and of the
+    /// refined visible masks, as BOP's `eval_bop22_coco.py` scores them.
+    #[serde(default)]
+    pub box_ap: ApFigures,
+    #[serde(default)]
+    pub mask_ap: ApFigures,
+    /// BOP's MSPD recall of the pose from no start (thresholds 5-50 px at
+    /// 640 px of width; an instance without a pose counts as missed).
+    #[serde(default)]
+    pub mspd_recall: Option<f64>,
     #[serde(skip_serializing_if = "Vec::is_empty", default)]
     pub pose: Vec<PoseOutcome>,
+    /// The detections in BOP's results format (`scene_id`, `image_id`,
+    /// `category_id`, `score`, `bbox`, `segmentation`, `time`); written to
+    /// a file of their own, not to the report.
+    #[serde(skip)]
+    pub results: Vec<serde_json::Value>,
 }
 
 impl Variant {
@@ -202,12 +333,15 @@ pub fn evaluate(
     };
     let pb = progress_bar(images.len() as u64, &format!("{name}: detecting"));
     let mut detections: Vec<Vec<DetectionJson>> = vec![Vec::new(); bop.images.len()];
+    let mut seconds = vec![0.0; bop.images.len()];
     let t = Instant::now();
     for &i in images {
         let img = load_image(&bop.rgb_path(&bop.images[i])).map_err(RunError::input)?;
+        let ti = Instant::now();
         detections[i] = detect_image(&img, &refs, &opts)
             .map_err(RunError::input)?
             .detections;
+        seconds[i] = ti.elapsed().as_secs_f64();
         pb.inc(1);
     }
     pb.finish_and_clear();
@@ -301,6 +435,7 @@ pub fn evaluate(
                 start_angle: None,
                 nearest_rotation: None,
                 nearest_rotation_any: None,
+                mspd: None,
             };
             // The least angle from the truth to a set of start rotations.
             let nearest = |qs: &mut dyn Iterator<Item = &[f64; 4]>| {
@@ -347,6 +482,14 @@ pub fn evaluate(
                         out.add_ok = e < 0.1 * info.diameter;
                         out.near_miss = !out.add_ok && e < 0.2 * info.diameter;
                         out.success = te < 0.1 * info.diameter && angle < 5.0;
+                        let camera = intrinsics(image);
+                        out.mspd = Some(mspd(
+                            &est,
+                            &truth,
+                            &info.symmetries_discrete,
+                            points,
+                            &camera,
+                        ));
                         out.t_error = Some(te);
                         out.angle = Some(angle);
                         // Along and across the truth's viewing ray.
@@ -363,6 +506,11 @@ pub fn evaluate(
         }
         pb.finish_and_clear();
     }
+    let (box_ap, mask_ap) = coco_scores(bop, images, &detections, &labels)?;
+    let errors: Vec<f64> = poses
+        .iter()
+        .map(|p| p.mspd.unwrap_or(f64::INFINITY))
+        .collect();
     let mut v = Variant {
         name: name.to_string(),
         models_dir: dir.display().to_string(),
@@ -372,9 +520,85 @@ pub fn evaluate(
         mean_seg_error_raw: 0.0,
         mean_recall_at_1fppi: 0.0,
         detect_ms_per_image: detect_ms,
+        box_ap,
+        mask_ap,
+        mspd_recall: mspd_recall(&errors, &mspd_thresholds(LMO_WIDTH)),
         objects,
         pose: poses,
+        results: bop_results(bop, images, &detections, &labels, &seconds),
     };
     v.set_means();
     Ok(v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::bop::BopImage;
+    use crate::pipeline::BoxJson;
+    use crate::vision::mask::Mask;
+
+    fn detection(label: &str, score: f64, mask: &Mask) -> DetectionJson {
+        DetectionJson {
+            label: label.into(),
+            model: label.into(),
+            score,
+            bbox: BoxJson {
+                x: 2.0,
+                y: 3.0,
+                width: 4.0,
+                height: 5.0,
+            },
+            viewpoint: 0,
+            view: None,
+            level: 0,
+            visible_fraction: 1.0,
+            truncated: false,
+            mask: Some(mask.to_rle()),
+            raw_mask: None,
+        }
+    }
+
+    /// The results read back in the field names and types of BOP's
+    /// `eval_bop22_coco.py`, the mask as the compressed RLE pycocotools
+    /// reads, only the scored photographs' detections of scored objects.
+    #[test]
+    fn results_read_back_in_bops_field_names() {
+        let bop = Bop {
+            root: std::path::PathBuf::new(),
+            models: Default::default(),
+            images: (0..2)
+                .map(|id| BopImage {
+                    scene: "000002".into(),
+                    id: 17 + id,
+                    cam_k: [0.0; 9],
+                    instances: Vec::new(),
+                })
+                .collect(),
+        };
+        let mut mask = Mask::new(8, 6);
+        mask.set(3, 4, true);
+        mask.set(4, 4, true);
+        let detections = vec![
+            vec![detection("ape", 0.5, &mask)],
+            vec![detection("ape", 0.7, &mask), detection("mug", 0.9, &mask)],
+        ];
+        let labels = vec![("ape".to_string(), 1)];
+        let out = bop_results(&bop, &[1], &detections, &labels, &[0.0, 0.25]);
+        let text = serde_json::to_string(&out).unwrap();
+        let back: Vec<serde_json::Value> = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.len(), 1, "{back:?}");
+        let r = &back[0];
+        assert_eq!(r["scene_id"], 2);
+        assert_eq!(r["image_id"], 18);
+        assert_eq!(r["category_id"], 1);
+        assert_eq!(r["score"], 0.7);
+        assert_eq!(r["bbox"], serde_json::json!([2.0, 3.0, 4.0, 5.0]));
+        assert_eq!(r["time"], 0.25);
+        assert_eq!(r["segmentation"]["size"], serde_json::json!([6, 8]));
+        let counts: crate::vision::mask::CompressedRle =
+            serde_json::from_value(r["segmentation"].clone()).unwrap();
+        let decoded = counts.decompress().and_then(|rle| Mask::from_rle(&rle));
+        assert_eq!(decoded, Some(mask));
+    }
 }

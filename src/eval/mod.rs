@@ -8,6 +8,7 @@
 pub mod bop_detect;
 pub mod bop_pose;
 pub mod bop_run;
+pub mod coco_ap;
 pub mod detection;
 pub mod plot;
 pub mod pose;
