@@ -37,6 +37,168 @@ impl RunError {
     }
 }
 
+/// The pose from no start of every scored instance of the models'
+/// objects (`visib_fract` and oracle gap as `scored_instance` says): each
+/// photograph's detection, then OR-IRLS from its start poses, as `POST
+/// /pose` without `initial_pose` answers.
+#[allow(clippy::too_many_arguments)]
+fn poses_from_no_start(
+    name: &str,
+    bop: &Bop,
+    images: &[usize],
+    labels: &[(String, u32)],
+    models: &[Model],
+    refs: &[&Model],
+    args: &ScanSettings,
+    meshes: &std::collections::BTreeMap<u32, (Mesh, Vec<Vector3<f64>>)>,
+) -> Result<Vec<PoseOutcome>, RunError> {
+    let mut poses = Vec::new();
+    let cases: Vec<(usize, usize, &str, u32)> = images
+        .iter()
+        .flat_map(|&i| {
+            let labels = &labels;
+            bop.images[i].instances.iter().filter_map(move |g| {
+                let (label, _) = labels.iter().find(|(_, id)| *id == g.obj_id)?;
+                scored_instance(g, args.max_oracle_gap).then_some((
+                    i,
+                    g.k,
+                    label.as_str(),
+                    g.obj_id,
+                ))
+            })
+        })
+        .collect();
+    let pb = progress_bar(cases.len() as u64, &format!("{name}: pose from no start"));
+    for (i, k, label, obj) in cases {
+        let image = &bop.images[i];
+        let g = &image.instances[k];
+        let truth = truth_pose(g)
+            .ok_or_else(|| RunError::input(format!("image {}: bad pose", image.id)))?;
+        let (mesh, points) = &meshes[&obj];
+        let info = &bop.models[&obj];
+        let img = load_image(&bop.rgb_path(image)).map_err(RunError::input)?;
+        // The model that detects this object (one of several objects'
+        // when trained jointly: then the request names the object).
+        let model = models
+            .iter()
+            .find(|m| m.labels().iter().any(|l| l == label))
+            .ok_or_else(|| RunError::input(format!("no model detects {label}")))?;
+        let (mask_source, mask) = match args.pose_mask {
+            PoseMask::Detect => (None, None),
+            PoseMask::None => (Some(MaskSource::None), None),
+            PoseMask::Oracle => (
+                Some(MaskSource::Provided),
+                Some(
+                    crate::data::load_mask(&bop.mask_visib_path(image, k))
+                        .map_err(RunError::input)?,
+                ),
+            ),
+        };
+        let params = PoseParams {
+            intrinsics: intrinsics(image),
+            initial_pose: None,
+            label: (model.labels().len() > 1).then(|| label.to_string()),
+            model: Some(model.meta.name.clone()),
+            mask: mask_source,
+            max_iterations: None,
+            start_uncertainty: None,
+        };
+        let t = Instant::now();
+        let answer = estimate(&img, mesh, &params, mask, refs);
+        let seconds = t.elapsed().as_secs_f64();
+        let mut out = PoseOutcome {
+            object: label.to_string(),
+            image: image.id,
+            k,
+            visib_fract: g.visib_fract,
+            add: None,
+            add_ok: false,
+            near_miss: false,
+            success: false,
+            t_error: None,
+            depth_error: None,
+            lateral_error: None,
+            angle: None,
+            seconds,
+            error: None,
+            detection_iou: None,
+            start_t_error: None,
+            start_angle: None,
+            nearest_rotation: None,
+            nearest_rotation_any: None,
+            mspd: None,
+        };
+        // The least angle from the truth to a set of start rotations.
+        let nearest = |qs: &mut dyn Iterator<Item = &[f64; 4]>| {
+            qs.filter_map(crate::pose::start::rotation_from_quaternion)
+                .map(|r| {
+                    let p = Pose {
+                        rotation: r,
+                        translation: truth.translation,
+                    };
+                    errors(&p, &truth, &info.symmetries_discrete).2
+                })
+                .min_by(f64::total_cmp)
+        };
+        let views = &model.meta.viewpoints;
+        out.nearest_rotation_any = nearest(&mut views.iter().flat_map(|v| v.rotations.iter()));
+        match answer {
+            Ok(a) => {
+                if let (Some(d), Some(b)) = (&a.detection, g.bbox_obj) {
+                    out.detection_iou = Some(box_iou(
+                        (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
+                        (b[0], b[1], b[2], b[3]),
+                    ));
+                    out.nearest_rotation = views
+                        .get(d.viewpoint)
+                        .and_then(|v| nearest(&mut v.rotations.iter()));
+                }
+                if let Some(sp) = a
+                    .start_pose
+                    .and_then(|sp| Pose::from_client(sp.rotation, sp.translation).ok())
+                {
+                    let (_, te, angle) = errors(&sp, &truth, &info.symmetries_discrete);
+                    out.start_t_error = Some(te);
+                    out.start_angle = Some(angle);
+                }
+                if let Ok(est) = Pose::from_client(a.pose.rotation, a.pose.translation) {
+                    let symmetric = !info.symmetries_discrete.is_empty();
+                    let e = if symmetric {
+                        add_s(&est, &truth, points)
+                    } else {
+                        add(&est, &truth, &[], points)
+                    };
+                    let (_, te, angle) = errors(&est, &truth, &info.symmetries_discrete);
+                    out.add = Some(e);
+                    out.add_ok = e < 0.1 * info.diameter;
+                    out.near_miss = !out.add_ok && e < 0.2 * info.diameter;
+                    out.success = te < 0.1 * info.diameter && angle < 5.0;
+                    let camera = intrinsics(image);
+                    out.mspd = Some(mspd(
+                        &est,
+                        &truth,
+                        &info.symmetries_discrete,
+                        points,
+                        &camera,
+                    ));
+                    out.t_error = Some(te);
+                    out.angle = Some(angle);
+                    // Along and across the truth's viewing ray.
+                    let ray = truth.translation.normalize();
+                    let d = est.translation - truth.translation;
+                    out.depth_error = Some(d.dot(&ray));
+                    out.lateral_error = Some((d - ray * d.dot(&ray)).norm());
+                }
+            }
+            Err(e) => out.error = Some(e.to_string()),
+        }
+        poses.push(out);
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    Ok(poses)
+}
+
 /// Width of LM-O's photographs, which scales BOP's MSPD thresholds.
 const LMO_WIDTH: f64 = 640.0;
 
@@ -360,152 +522,11 @@ pub fn evaluate(
             )
         })
         .collect();
-    let mut poses = Vec::new();
-    if pose {
-        let cases: Vec<(usize, usize, &str, u32)> = images
-            .iter()
-            .flat_map(|&i| {
-                let labels = &labels;
-                bop.images[i].instances.iter().filter_map(move |g| {
-                    let (label, _) = labels.iter().find(|(_, id)| *id == g.obj_id)?;
-                    scored_instance(g, args.max_oracle_gap).then_some((
-                        i,
-                        g.k,
-                        label.as_str(),
-                        g.obj_id,
-                    ))
-                })
-            })
-            .collect();
-        let pb = progress_bar(cases.len() as u64, &format!("{name}: pose from no start"));
-        for (i, k, label, obj) in cases {
-            let image = &bop.images[i];
-            let g = &image.instances[k];
-            let truth = truth_pose(g)
-                .ok_or_else(|| RunError::input(format!("image {}: bad pose", image.id)))?;
-            let (mesh, points) = &meshes[&obj];
-            let info = &bop.models[&obj];
-            let img = load_image(&bop.rgb_path(image)).map_err(RunError::input)?;
-            // The model that detects this object (one of several objects'
-            // when trained jointly: then the request names the object).
-            let model = models
-                .iter()
-                .find(|m| m.labels().iter().any(|l| l == label))
-                .ok_or_else(|| RunError::input(format!("no model detects {label}")))?;
-            let (mask_source, mask) = match args.pose_mask {
-                PoseMask::Detect => (None, None),
-                PoseMask::None => (Some(MaskSource::None), None),
-                PoseMask::Oracle => (
-                    Some(MaskSource::Provided),
-                    Some(
-                        crate::data::load_mask(&bop.mask_visib_path(image, k))
-                            .map_err(RunError::input)?,
-                    ),
-                ),
-            };
-            let params = PoseParams {
-                intrinsics: intrinsics(image),
-                initial_pose: None,
-                label: (model.labels().len() > 1).then(|| label.to_string()),
-                model: Some(model.meta.name.clone()),
-                mask: mask_source,
-                max_iterations: None,
-                start_uncertainty: None,
-            };
-            let t = Instant::now();
-            let answer = estimate(&img, mesh, &params, mask, &refs);
-            let seconds = t.elapsed().as_secs_f64();
-            let mut out = PoseOutcome {
-                object: label.to_string(),
-                image: image.id,
-                k,
-                visib_fract: g.visib_fract,
-                add: None,
-                add_ok: false,
-                near_miss: false,
-                success: false,
-                t_error: None,
-                depth_error: None,
-                lateral_error: None,
-                angle: None,
-                seconds,
-                error: None,
-                detection_iou: None,
-                start_t_error: None,
-                start_angle: None,
-                nearest_rotation: None,
-                nearest_rotation_any: None,
-                mspd: None,
-            };
-            // The least angle from the truth to a set of start rotations.
-            let nearest = |qs: &mut dyn Iterator<Item = &[f64; 4]>| {
-                qs.filter_map(crate::pose::start::rotation_from_quaternion)
-                    .map(|r| {
-                        let p = Pose {
-                            rotation: r,
-                            translation: truth.translation,
-                        };
-                        errors(&p, &truth, &info.symmetries_discrete).2
-                    })
-                    .min_by(f64::total_cmp)
-            };
-            let views = &model.meta.viewpoints;
-            out.nearest_rotation_any = nearest(&mut views.iter().flat_map(|v| v.rotations.iter()));
-            match answer {
-                Ok(a) => {
-                    if let (Some(d), Some(b)) = (&a.detection, g.bbox_obj) {
-                        out.detection_iou = Some(box_iou(
-                            (d.bbox.x, d.bbox.y, d.bbox.width, d.bbox.height),
-                            (b[0], b[1], b[2], b[3]),
-                        ));
-                        out.nearest_rotation = views
-                            .get(d.viewpoint)
-                            .and_then(|v| nearest(&mut v.rotations.iter()));
-                    }
-                    if let Some(sp) = a
-                        .start_pose
-                        .and_then(|sp| Pose::from_client(sp.rotation, sp.translation).ok())
-                    {
-                        let (_, te, angle) = errors(&sp, &truth, &info.symmetries_discrete);
-                        out.start_t_error = Some(te);
-                        out.start_angle = Some(angle);
-                    }
-                    if let Ok(est) = Pose::from_client(a.pose.rotation, a.pose.translation) {
-                        let symmetric = !info.symmetries_discrete.is_empty();
-                        let e = if symmetric {
-                            add_s(&est, &truth, points)
-                        } else {
-                            add(&est, &truth, &[], points)
-                        };
-                        let (_, te, angle) = errors(&est, &truth, &info.symmetries_discrete);
-                        out.add = Some(e);
-                        out.add_ok = e < 0.1 * info.diameter;
-                        out.near_miss = !out.add_ok && e < 0.2 * info.diameter;
-                        out.success = te < 0.1 * info.diameter && angle < 5.0;
-                        let camera = intrinsics(image);
-                        out.mspd = Some(mspd(
-                            &est,
-                            &truth,
-                            &info.symmetries_discrete,
-                            points,
-                            &camera,
-                        ));
-                        out.t_error = Some(te);
-                        out.angle = Some(angle);
-                        // Along and across the truth's viewing ray.
-                        let ray = truth.translation.normalize();
-                        let d = est.translation - truth.translation;
-                        out.depth_error = Some(d.dot(&ray));
-                        out.lateral_error = Some((d - ray * d.dot(&ray)).norm());
-                    }
-                }
-                Err(e) => out.error = Some(e.to_string()),
-            }
-            poses.push(out);
-            pb.inc(1);
-        }
-        pb.finish_and_clear();
-    }
+    let poses = if pose {
+        poses_from_no_start(name, bop, images, &labels, &models, &refs, args, meshes)?
+    } else {
+        Vec::new()
+    };
     let (box_ap, mask_ap) = coco_scores(bop, images, &detections, &labels)?;
     let errors: Vec<f64> = poses
         .iter()
