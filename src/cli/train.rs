@@ -78,6 +78,10 @@ pub(crate) struct TrainArgs {
     /// Share of the view photographs with an occluder.
     #[arg(long, default_value_t = AugmentParams::default().occluded_share)]
     pub(crate) occluded_share: f64,
+    /// Range of the factor on a view's size in its crops (MIN,MAX; drawn
+    /// uniformly; default 0.9,1.1).
+    #[arg(long, value_name = "MIN,MAX")]
+    pub(crate) view_scale: Option<String>,
     /// Use only the first N box-only photographs of each object (sorted
     /// by name; default all), e.g. to score the others with `eval --part
     /// multiple --skip-first N`.
@@ -223,6 +227,9 @@ impl TrainArgs {
         if let Some(o) = &self.occlusion {
             let [lo, hi] = numbers(o, "--occlusion", "MIN,MAX")?;
             mv.augment.occlusion = [lo, hi];
+        }
+        if let Some(o) = &self.view_scale {
+            mv.augment.scale = numbers(o, "--view-scale", "MIN,MAX")?;
         }
         if let Some(o) = &self.occluders {
             let [objects, patches, smooth] =

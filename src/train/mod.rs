@@ -31,6 +31,7 @@ pub mod loss;
 pub mod mesh;
 pub mod mirror;
 pub mod multiview;
+pub mod photo_augment;
 pub mod qp;
 pub mod routes;
 pub mod scales;

@@ -237,7 +237,7 @@ fn warp_view(view: &View, warp: &Warp, width: usize, height: usize) -> (Vec<f32>
 
 /// An occluder's shape: an ellipse or a rectangle entering the box
 /// `(x0, y0, x1, y1)` from one side to `depth` of its extent.
-fn occluder_shape(
+pub(crate) fn occluder_shape(
     b: (f64, f64, f64, f64),
     depth: f64,
     width: usize,
@@ -305,7 +305,7 @@ fn occluder_shape(
 
 /// The mask as weights in 0..1, its outline softened by two passes of a
 /// 3x3 box filter (a hard cut would leave an edge no photograph has).
-fn feathered(mask: &Mask) -> Vec<f32> {
+pub(crate) fn feathered(mask: &Mask) -> Vec<f32> {
     let a = mask
         .data
         .iter()

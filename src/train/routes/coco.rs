@@ -10,6 +10,7 @@ use crate::data::{load_coco, Sample};
 use crate::model::Model;
 use crate::train::ko8::Source;
 use crate::train::multiview::MultiViewParams;
+use crate::train::photo_augment::PhotoAugment;
 use crate::train::{progress_bar, PyramidCache, TrainReport};
 use crate::vision::cells::FeatureKind;
 use std::path::PathBuf;
@@ -84,6 +85,7 @@ pub fn train_coco(
             box_fold_passes: None,
             renders: Default::default(),
             mining: false,
+            augment: PhotoAugment::default(),
         };
         let PhotoTraining {
             mut model, report, ..

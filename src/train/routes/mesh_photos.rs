@@ -13,6 +13,7 @@ use crate::model::Model;
 use crate::pose::mesh::Mesh;
 use crate::train::mesh::{representative_rotations, without_boxes, ROTATIONS_PER_COMPONENT};
 use crate::train::multiview::{train_sources, MultiViewParams, Sources};
+use crate::train::photo_augment::PhotoAugment;
 use crate::train::views::{OccluderKinds, View};
 use crate::train::{PyramidCache, TrainParams, TrainReport};
 use crate::vision::image::ColorImage;
@@ -214,6 +215,7 @@ pub fn train_with_photo_boxes(
         // Budgeted full searches until one finds nothing, then an exact
         // one: both sides of the check alike.
         mining: true,
+        augment: PhotoAugment::default(),
     };
     let mv = MultiViewParams {
         latent_rounds: args.latent_rounds,

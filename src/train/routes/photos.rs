@@ -13,6 +13,7 @@ use crate::train::components::train_choosing_components;
 use crate::train::ko8::Source;
 use crate::train::mirror;
 use crate::train::multiview::{MultiViewParams, Sources};
+use crate::train::photo_augment::{self, is_crop, source_photo, PhotoAugment};
 use crate::train::views::View;
 use crate::train::{train_model, PyramidCache, TrainError, TrainParams, TrainReport};
 use crate::vision::hog::CELL_SIZE;
@@ -105,6 +106,9 @@ pub struct BoxRoute {
     /// finds nothing ends the training, or is checked by an exact one with
     /// `--exact-check` ([`TrainParams::exact_check`]).
     pub mining: bool,
+    /// Crops of the photographs' objects seen again at other sizes
+    /// (the flags' `--augment*` over it).
+    pub augment: PhotoAugment,
 }
 
 /// What [`train_photographs`] made.
@@ -139,7 +143,7 @@ pub fn train_photographs(
 ) -> Result<PhotoTraining, RouteError> {
     let started = std::time::Instant::now();
     let sources = &route.sources;
-    let params = photo_params(cat, loaded, route, st, params);
+    let mut params = photo_params(cat, loaded, route, st, params);
     let samples = if route.mirror_photos {
         pb.set_message(format!("{cat}: mirrored photographs"));
         let views = sources.contains(&Source::Views);
@@ -155,6 +159,24 @@ pub fn train_photographs(
     } else {
         loaded.to_vec()
     };
+    let augment = st.augment.over(&route.augment);
+    pb.set_message(format!("{cat}: crops"));
+    let (samples, crops) =
+        photo_augment::with_crops(&samples, &augment, &route.renders, cache, &params, pb)
+            .map_err(RouteError::input)?;
+    if !crops.is_empty() {
+        eprintln!(
+            "{cat}: {} crops of the photographs' objects (sizes x{:.2}..{:.2}, paste {}, occluded {})",
+            crops.len(),
+            augment.scale[0],
+            augment.scale[1],
+            augment.paste,
+            augment.occluded
+        );
+        let mut renders = (*params.examples.renders).clone();
+        renders.extend(crops.iter().cloned());
+        params.examples.renders = Arc::new(renders);
+    }
     let (mut model, report, imputed) = train_coco(
         cat,
         samples.clone(),
@@ -194,6 +216,9 @@ pub fn train_photographs(
             "mirror_photos".into(),
             serde_json::Value::Bool(route.mirror_photos),
         );
+        if augment.per_box > 0 {
+            p.insert("photo_augment".into(), serde_json::json!(augment));
+        }
     }
     Ok(PhotoTraining {
         model,
@@ -287,22 +312,39 @@ pub fn fold_check(
         ..mv.clone()
     };
     let params = &fold_params(params, route);
-    let (fitted, found) =
-        box_correction::fit(trained, route.box_folds, &route.renders, cache, |subset| {
-            let hidden = indicatif::ProgressBar::hidden();
-            train_coco(
-                cat,
-                subset,
-                extra_negatives,
-                &route.sources,
-                cache,
-                params,
-                &fold_mv,
-                &hidden,
-            )
-            .map(|(m, _, _)| m)
-        })
-        .map_err(RouteError::input)?;
+    // Crops stay out of the folds' held-out photographs, and train a fold
+    // only with the photograph they were cut from.
+    let mut always = (*route.renders).clone();
+    always.extend(
+        trained
+            .iter()
+            .filter(|s| is_crop(&s.image))
+            .map(|s| s.image.clone()),
+    );
+    let (fitted, found) = box_correction::fit(trained, route.box_folds, &always, cache, |subset| {
+        let photos: HashSet<PathBuf> = subset
+            .iter()
+            .filter(|s| !is_crop(&s.image))
+            .map(|s| s.image.clone())
+            .collect();
+        let subset: Vec<Sample> = subset
+            .into_iter()
+            .filter(|s| !is_crop(&s.image) || photos.contains(&source_photo(&s.image)))
+            .collect();
+        let hidden = indicatif::ProgressBar::hidden();
+        train_coco(
+            cat,
+            subset,
+            extra_negatives,
+            &route.sources,
+            cache,
+            params,
+            &fold_mv,
+            &hidden,
+        )
+        .map(|(m, _, _)| m)
+    })
+    .map_err(RouteError::input)?;
     match &fitted {
         Some(c) => eprintln!(
             "{cat}: box correction by {}-fold cross-validation over {} held-out detections: centre moved by ({:+.3}, {:+.3}) of the window, size x ({:.3}, {:.3})",
@@ -535,6 +577,7 @@ mod tests {
             box_fold_passes: None,
             renders: Arc::new(renders.iter().map(|s| s.image.clone()).collect()),
             mining: true,
+            augment: PhotoAugment::default(),
         };
         let base = TrainParams::default();
         let with = photo_params("glue", &all, &route(&renders), &settings, &base);
@@ -563,6 +606,7 @@ mod tests {
             box_fold_passes: most,
             renders: Default::default(),
             mining: true,
+            augment: PhotoAugment::default(),
         };
         let mut full = TrainParams::default();
         full.solver.max_passes = 15;

@@ -7,6 +7,7 @@
 use super::RouteError;
 use crate::train::ko8::NegativeSet;
 use crate::train::loss::LossKind;
+use crate::train::photo_augment::PhotoAugment;
 use crate::train::TrainParams;
 use crate::vision::cells::FeatureKind;
 use crate::vision::energy::PairwiseMode;
@@ -125,6 +126,72 @@ pub struct TrainSettings {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    #[command(flatten)]
+    pub augment: AugmentSettings,
+}
+
+/// The photographs' routes' augmentation (`train --coco`, `mesh
+/// --photos`): crops of every boxed object seen again at other sizes,
+/// mirrored, jittered, pasted (docs/training.md, "Augmentation"). `None`:
+/// the route's default ([`PhotoAugment`]).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct AugmentSettings {
+    /// Crops made from each box, each a training photograph of its own
+    /// (0: none).
+    #[arg(long)]
+    pub augment: Option<usize>,
+    /// Range of the factor on the object's size, MIN,MAX (drawn
+    /// log-uniformly; never below the smallest box).
+    #[arg(long, value_parser = parse_range)]
+    pub augment_scale: Option<[f64; 2]>,
+    /// Surroundings kept around the box, as a fraction of its size.
+    #[arg(long)]
+    pub augment_margin: Option<f64>,
+    /// Mirror half of the crops (`false` for objects without a plane of
+    /// symmetry).
+    #[arg(long, action = clap::ArgAction::Set)]
+    pub augment_mirror: Option<bool>,
+    /// Colour jitter: contrast and brightness within 1 +- J.
+    #[arg(long)]
+    pub augment_jitter: Option<f64>,
+    /// Share of the crops blurred.
+    #[arg(long)]
+    pub augment_blur: Option<f64>,
+    /// Share of the crops whose object is pasted onto another
+    /// photograph's background.
+    #[arg(long)]
+    pub augment_paste: Option<f64>,
+    /// Share of the crops with a pasted occluder over part of the object.
+    #[arg(long)]
+    pub augment_occluded: Option<f64>,
+}
+
+impl AugmentSettings {
+    /// `base` with what the flags set.
+    pub fn over(&self, base: &PhotoAugment) -> PhotoAugment {
+        let mut p = base.clone();
+        set(&mut p.per_box, self.augment);
+        set(&mut p.scale, self.augment_scale);
+        set(&mut p.margin, self.augment_margin);
+        set(&mut p.mirror, self.augment_mirror);
+        set(&mut p.jitter, self.augment_jitter);
+        set(&mut p.blur, self.augment_blur);
+        set(&mut p.paste, self.augment_paste);
+        set(&mut p.occluded, self.augment_occluded);
+        p
+    }
+}
+
+/// `MIN,MAX` of `--augment-scale`.
+pub fn parse_range(s: &str) -> Result<[f64; 2], String> {
+    let bad = || format!("{s:?}: expected MIN,MAX (e.g. 0.6,1.8)");
+    let (a, b) = s.split_once(',').ok_or_else(bad)?;
+    let a: f64 = a.trim().parse().map_err(|_| bad())?;
+    let b: f64 = b.trim().parse().map_err(|_| bad())?;
+    if !(a.is_finite() && b.is_finite() && a <= b) {
+        return Err(bad());
+    }
+    Ok([a, b])
 }
 
 impl TrainSettings {
@@ -239,6 +306,7 @@ impl Default for TrainSettings {
             other_negatives: OTHER_NEGATIVES,
             negative_scenes: NEGATIVE_SCENES,
             threads: None,
+            augment: AugmentSettings::default(),
         }
     }
 }
