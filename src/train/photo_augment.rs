@@ -112,6 +112,21 @@ pub fn is_crop(path: &Path) -> bool {
     path.to_string_lossy().contains(CROP_MARK)
 }
 
+/// `samples` without the crops whose source photograph is not among them
+/// (a box-correction fold that holds a photograph out trains none of its
+/// crops).
+pub fn with_their_photographs(samples: Vec<Sample>) -> Vec<Sample> {
+    let photos: HashSet<PathBuf> = samples
+        .iter()
+        .filter(|s| !is_crop(&s.image))
+        .map(|s| s.image.clone())
+        .collect();
+    samples
+        .into_iter()
+        .filter(|s| !is_crop(&s.image) || photos.contains(&source_photo(&s.image)))
+        .collect()
+}
+
 /// One crop: its image and annotation.
 pub struct Crop {
     pub image: ColorImage,
@@ -497,6 +512,27 @@ mod tests {
         assert_eq!(source_photo(p), PathBuf::from("a/b.png"));
         assert_eq!(source_photo(Path::new("a/b.png")), PathBuf::from("a/b.png"));
         assert!(!is_crop(Path::new("a/b.png")));
+    }
+
+    #[test]
+    fn a_fold_trains_no_crop_of_a_photograph_it_holds_out() {
+        let s = |p: &str| Sample::negative(PathBuf::from(p));
+        let fold = vec![
+            s("a.png"),
+            s("a.png#crop0.0"),
+            s("a.png#crop0.1"),
+            s("b.png#crop1.0"),
+            s("c.png"),
+        ];
+        let kept: Vec<PathBuf> = with_their_photographs(fold)
+            .into_iter()
+            .map(|s| s.image)
+            .collect();
+        let want: Vec<PathBuf> = ["a.png", "a.png#crop0.0", "a.png#crop0.1", "c.png"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        assert_eq!(kept, want);
     }
 
     #[test]

@@ -13,7 +13,7 @@ use crate::train::components::train_choosing_components;
 use crate::train::ko8::Source;
 use crate::train::mirror;
 use crate::train::multiview::{MultiViewParams, Sources};
-use crate::train::photo_augment::{self, is_crop, source_photo, PhotoAugment};
+use crate::train::photo_augment::{self, is_crop, PhotoAugment};
 use crate::train::views::View;
 use crate::train::{train_model, PyramidCache, TrainError, TrainParams, TrainReport};
 use crate::vision::hog::CELL_SIZE;
@@ -322,15 +322,7 @@ pub fn fold_check(
             .map(|s| s.image.clone()),
     );
     let (fitted, found) = box_correction::fit(trained, route.box_folds, &always, cache, |subset| {
-        let photos: HashSet<PathBuf> = subset
-            .iter()
-            .filter(|s| !is_crop(&s.image))
-            .map(|s| s.image.clone())
-            .collect();
-        let subset: Vec<Sample> = subset
-            .into_iter()
-            .filter(|s| !is_crop(&s.image) || photos.contains(&source_photo(&s.image)))
-            .collect();
+        let subset = photo_augment::with_their_photographs(subset);
         let hidden = indicatif::ProgressBar::hidden();
         train_coco(
             cat,
