@@ -392,12 +392,31 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     let sc = synthetic_scene(3, 320, 240);
     let png = encode(&sc, image::ImageFormat::Png);
     let jpeg = encode(&sc, image::ImageFormat::Jpeg);
-    let detect = |q: &str| c.post(server.url(&format!("/detect{q}")));
 
+    detect_answers(&spec, &mut seen, &server, &c, png.clone(), jpeg.clone()).await;
+    detect_refusals(&spec, &mut seen, &server, &c, png.clone(), jpeg.clone()).await;
+    overload(&spec, &mut seen, &server, &c, png.clone()).await;
+    operations(&spec, &mut seen, &server, &c).await;
+    stalls_and_limits(&spec, &mut seen, &server).await;
+    let ready_503 = shutdown_refusals(&spec, &mut seen, server, &c, png).await;
+    never_produced(&spec, &seen, ready_503);
+}
+
+/// 200 answers of /detect: JSON (PNG and JPEG bodies, multipart), PNG,
+/// and the response transfer between the loaded models.
+async fn detect_answers(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    server: &Server,
+    c: &reqwest::Client,
+    png: Vec<u8>,
+    jpeg: Vec<u8>,
+) {
+    let detect = |q: &str| c.post(server.url(&format!("/detect{q}")));
     // 200 JSON (PNG and JPEG bodies, multipart) and 200 PNG.
     let (s, _, body) = call(
-        &spec,
-        &mut seen,
+        spec,
+        seen,
         "/detect",
         "post",
         detect("?masks=both")
@@ -412,8 +431,8 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         "the object is found"
     );
     let (s, _, body) = call(
-        &spec,
-        &mut seen,
+        spec,
+        seen,
         "/detect",
         "post",
         detect("?rle=compressed")
@@ -429,8 +448,8 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         reqwest::multipart::Part::bytes(png.clone()).file_name("scene.png"),
     );
     let (s, _, _) = call(
-        &spec,
-        &mut seen,
+        spec,
+        seen,
         "/detect",
         "post",
         detect("?model=synthetic").multipart(form),
@@ -438,8 +457,8 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     .await;
     assert_eq!(s, 200);
     let (s, h, _) = call(
-        &spec,
-        &mut seen,
+        spec,
+        seen,
         "/detect",
         "post",
         detect("")
@@ -453,8 +472,8 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     assert!(h.contains_key("x-detections"));
     // Response transfer between the loaded models.
     let (s, _, _) = call(
-        &spec,
-        &mut seen,
+        spec,
+        seen,
         "/detect",
         "post",
         detect("?transfer=true")
@@ -463,7 +482,18 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     )
     .await;
     assert_eq!(s, 200);
+}
 
+/// The 4xx refusals of /detect.
+async fn detect_refusals(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    server: &Server,
+    c: &reqwest::Client,
+    png: Vec<u8>,
+    jpeg: Vec<u8>,
+) {
+    let detect = |q: &str| c.post(server.url(&format!("/detect{q}")));
     // 4xx.
     let cases: Vec<(&str, reqwest::RequestBuilder, u16)> = vec![
         (
@@ -583,10 +613,20 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         ),
     ];
     for (what, req, want) in cases {
-        let (s, _, body) = call(&spec, &mut seen, "/detect", "post", req).await;
+        let (s, _, body) = call(spec, seen, "/detect", "post", req).await;
         assert_eq!(s, want, "{what}: {}", String::from_utf8_lossy(&body));
     }
+}
 
+/// 503 from a full queue.
+async fn overload(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    server: &Server,
+    c: &reqwest::Client,
+    png: Vec<u8>,
+) {
+    let detect = |q: &str| c.post(server.url(&format!("/detect{q}")));
     // 503: one request computing, one in the queue's only place, the next
     // refused at once (requests arriving together may be refused too).
     let big = encode(&synthetic_scene(5, 2560, 1920), image::ImageFormat::Jpeg);
@@ -605,8 +645,8 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         let text = metrics_text(&server.base).await;
         if metric(&text, "sdhop_queue_size") >= 1.0 {
             let (s, _, body) = call(
-                &spec,
-                &mut seen,
+                spec,
+                seen,
                 "/detect",
                 "post",
                 detect("")
@@ -637,7 +677,10 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
             r.status()
         );
     }
+}
 
+/// The operations' endpoints, their metrics among them.
+async fn operations(spec: &Value, seen: &mut Vec<Seen>, server: &Server, c: &reqwest::Client) {
     // Operations.
     for (path, want) in [
         ("/health/live", 200),
@@ -648,7 +691,7 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         ("/openapi.yaml", 200),
     ] {
         let path: &'static str = path;
-        let (s, _, body) = call(&spec, &mut seen, path, "get", c.get(server.url(path))).await;
+        let (s, _, body) = call(spec, seen, path, "get", c.get(server.url(path))).await;
         assert_eq!(s, want, "{path}");
         if path == "/models" {
             // Every model names its cells (the shipped ones are HOG).
@@ -682,7 +725,10 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
             );
         }
     }
+}
 
+/// 408 and 429 on raw connections.
+async fn stalls_and_limits(spec: &Value, seen: &mut Vec<Seen>, server: &Server) {
     // 408: uploads that stall past the body grace; 429: a connection over
     // the per-client limit (the others held idle).
     let addr = server.base.trim_start_matches("http://").to_string();
@@ -698,11 +744,21 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
         // refused with 429 instead of timing out with 408.
         wait_released(&addr).await;
         let answer = raw_exchange(&addr, head.clone()).await;
-        check_raw(&spec, &mut seen, path, &answer, 408);
+        check_raw(spec, seen, path, &answer, 408);
         let answer = over_the_limit(&addr, head).await;
-        check_raw(&spec, &mut seen, path, &answer, 429);
+        check_raw(spec, seen, path, &answer, 429);
     }
+}
 
+/// Shutting down: readiness 503 and /detect refused; whether the
+/// readiness 503 was caught.
+async fn shutdown_refusals(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    server: Server,
+    c: &reqwest::Client,
+    png: Vec<u8>,
+) -> bool {
     // Not ready while shutting down: readiness 503, and /detect refuses.
     let client = c.clone();
     let ready_url = server.url("/health/ready");
@@ -721,7 +777,7 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
                 let status = r.status().as_u16();
                 let ctype = r.headers()[CONTENT_TYPE].to_str().unwrap().to_string();
                 let body = r.bytes().await.unwrap();
-                check_schema(&spec, "/health/ready", "get", status, &ctype, &body);
+                check_schema(spec, "/health/ready", "get", status, &ctype, &body);
                 if status == 503 {
                     ready_503 = true;
                     seen.push(Seen {
@@ -748,8 +804,11 @@ async fn every_documented_status_is_produced_and_matches_its_schema() {
     if let Some(d) = done {
         assert!(d.await.unwrap().unwrap(), "clean shutdown");
     }
+    ready_503
+}
 
-    // Every (path, method, status) of the document was produced.
+/// Every (path, method, status) of the document was produced.
+fn never_produced(spec: &Value, seen: &[Seen], ready_503: bool) {
     let produced: BTreeSet<(String, String, u16)> = seen
         .iter()
         .map(|s| (s.path.to_string(), s.method.to_string(), s.status))
