@@ -88,7 +88,22 @@ pub(super) async fn pose_statuses(
     let r: Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(r["mask_source"], "detected");
     assert_eq!(r["detection"]["model"], "synthetic");
+    pose_refusals(spec, seen, server, c, &sc).await;
+}
 
+/// The refusals of `POST /pose` (4xx, and the deadline's answer), over
+/// the unoccluded scene, with `sc` as a JPEG where a mask should be.
+async fn pose_refusals(
+    spec: &Value,
+    seen: &mut Vec<Seen>,
+    server: &Server,
+    c: &reqwest::Client,
+    sc: &sdhop::synth::Scene,
+) {
+    let plain = pose_scene(false);
+    let mesh = Mesh::cuboid(0.15, 0.1, 0.07);
+    let ply = mesh.to_ply(false);
+    let post = |q: &str| c.post(server.url(&format!("/pose{q}")));
     // Errors.
     let good = pose_params(&plain.start, serde_json::json!({}));
     let skewed = {
@@ -103,7 +118,7 @@ pub(super) async fn pose_statuses(
             .unwrap();
         out
     };
-    let jpeg_mask = encode(&sc, image::ImageFormat::Jpeg);
+    let jpeg_mask = encode(sc, image::ImageFormat::Jpeg);
     let with_mask = |p: Value| pose_params(&plain.start, p);
     // Params without an initial pose.
     let no_start = |extra: Value| {
