@@ -141,32 +141,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 };
                 acc[2 + ci] += 1.0 - m.iou(&a.visible);
                 if let (0, Ok(dir)) = (ci, std::env::var("DUMP_DIR")) {
-                    let (x0, y0, x1, y1) = d.grid.pixel_range(w, h);
-                    let mut out = image::RgbImage::new(w as u32, h as u32);
-                    for y in 0..h {
-                        for x in 0..w {
-                            let g = (img.get(x, y, 0) + img.get(x, y, 1) + img.get(x, y, 2)) / 6.0;
-                            let g = g as u8;
-                            let (p, t, r) = (m.get(x, y), a.visible.get(x, y), raw.get(x, y));
-                            let mut c = match (p, t) {
-                                (true, true) => [g / 2, 128 + g / 2, g / 2],
-                                (true, false) => [g / 2, g / 2, 128 + g / 2],
-                                (false, true) => [128 + g / 2, g / 2, g / 2],
-                                _ => [g, g, g],
-                            };
-                            let edge = (x == x0 || x + 1 == x1) && (y0..y1).contains(&y)
-                                || (y == y0 || y + 1 == y1) && (x0..x1).contains(&x);
-                            if edge {
-                                c = [255, 255, 0];
-                            }
-                            if r && (x + y) % 6 == 0 {
-                                c = [255, 255, 255];
-                            }
-                            out.put_pixel(x as u32, y as u32, image::Rgb(c));
-                        }
-                    }
-                    let e = 1.0 - m.iou(&a.visible);
-                    out.save(PathBuf::from(&dir).join(format!("{:.3}-{}.png", e, s.id)))?;
+                    save_overlay(&dir, &img, &m, &a.visible, &raw, &d.grid, &s.id)?;
                 }
                 if ci == 0 && std::env::var("BREAKDOWN").is_ok() {
                     let occ_path = s.image.with_extension("occ.png");
@@ -248,13 +223,68 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let nf = n.max(1) as f64;
         table.push((o.clone(), acc.iter().map(|v| v / nf).collect()));
     }
+    print_table(&configs, &table, &refine_ms, refine_n);
+    Ok(())
+}
+
+/// The refined mask `m` over the photograph in grey: green where it and
+/// the truth agree, blue where it alone is, red where the truth alone is,
+/// the template's box yellow, the raw mask dotted white; saved under `dir`
+/// as `ERROR-ID.png`.
+fn save_overlay(
+    dir: &str,
+    img: &sdhop::vision::image::ColorImage,
+    m: &sdhop::vision::mask::Mask,
+    visible: &sdhop::vision::mask::Mask,
+    raw: &sdhop::vision::mask::Mask,
+    grid: &sdhop::vision::mask::CellGrid,
+    id: &str,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let (w, h) = (img.width(), img.height());
+    let (x0, y0, x1, y1) = grid.pixel_range(w, h);
+    let mut out = image::RgbImage::new(w as u32, h as u32);
+    for y in 0..h {
+        for x in 0..w {
+            let g = (img.get(x, y, 0) + img.get(x, y, 1) + img.get(x, y, 2)) / 6.0;
+            let g = g as u8;
+            let (p, t, r) = (m.get(x, y), visible.get(x, y), raw.get(x, y));
+            let mut c = match (p, t) {
+                (true, true) => [g / 2, 128 + g / 2, g / 2],
+                (true, false) => [g / 2, g / 2, 128 + g / 2],
+                (false, true) => [128 + g / 2, g / 2, g / 2],
+                _ => [g, g, g],
+            };
+            let edge = (x == x0 || x + 1 == x1) && (y0..y1).contains(&y)
+                || (y == y0 || y + 1 == y1) && (x0..x1).contains(&x);
+            if edge {
+                c = [255, 255, 0];
+            }
+            if r && (x + y) % 6 == 0 {
+                c = [255, 255, 255];
+            }
+            out.put_pixel(x as u32, y as u32, image::Rgb(c));
+        }
+    }
+    let e = 1.0 - m.iou(visible);
+    out.save(PathBuf::from(dir).join(format!("{e:.3}-{id}.png")))?;
+    Ok(())
+}
+
+/// The errors per object and configuration, their means and the
+/// refinement's time per detection.
+fn print_table(
+    configs: &[String],
+    table: &[(String, Vec<f64>)],
+    refine_ms: &[f64],
+    refine_n: usize,
+) {
     print!("{:10} {:>7} {:>7}", "object", "raw", "snap");
-    for c in &configs {
+    for c in configs {
         print!(" {c:>14}");
     }
     println!();
     let mut mean = vec![0.0; 2 + configs.len()];
-    for (o, v) in &table {
+    for (o, v) in table {
         print!("{o:10}");
         for (i, x) in v.iter().enumerate() {
             mean[i] += x / table.len() as f64;
@@ -268,9 +298,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     println!();
     print!("{:10} {:>7} {:>7}", "ms/det", "", "");
-    for ms in &refine_ms {
+    for ms in refine_ms {
         print!(" {:>14.2}", ms / refine_n.max(1) as f64);
     }
     println!();
-    Ok(())
 }

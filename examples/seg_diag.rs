@@ -9,7 +9,7 @@
 
 use std::path::PathBuf;
 
-use sdhop::data::{ko8_visible_mask, load_image, load_mask};
+use sdhop::data::{ko8_visible_mask, load_image, load_mask, Annotation};
 use sdhop::model::Model;
 use sdhop::train::ko8::Ko8Data;
 use sdhop::train::loss::{cell_truth, IntegralMask};
@@ -46,23 +46,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (sp(50.0, 10, 1), 0.5, 0.5),
         (sp(150.0, 30, 1), 0.5, 0.5),
     ];
-    println!(
-        "{:10} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6}",
-        "object",
-        "n",
-        "boxIoU",
-        "raw",
-        "ref",
-        "orc@det",
-        "orcRef",
-        "mdl@gt",
-        "orc@gt",
-        "full@d",
-        "TP",
-        "FN",
-        "FP",
-        "TN"
-    );
+    print_header();
     for (oi, o) in data.objects.iter().enumerate() {
         if only.is_some_and(|x| x != o) {
             continue;
@@ -144,48 +128,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 ref_acc[vi][1] += err(&refine_mask(&raw, &d.grid, &seg, &rp), truth);
             }
             // Best template location for the truth box.
-            let best = det
-                .locations(&pyr, 0.5)
-                .into_iter()
-                .map(|l| (box_iou(det.grid(&pyr, &l).pixel_box(), a.bbox), l))
-                .max_by(|x, y| x.0.total_cmp(&y.0));
-            if let Some((biou, l)) = best {
-                best_iou += biou;
-                let g: CellGrid = det.grid(&pyr, &l);
-                let (mut p, _, _) = det.problem_at(&pyr, &l);
-                let mut graph = Graph::new();
-                let mut v = Vec::new();
-                p.solve(&mut graph, &mut v);
-                acc[5] += err(&raw_mask(&g, &v, w, h), truth);
-                let mut tg = Vec::new();
-                cell_truth(&g, &vis, &mut tg);
-                // Split the model's errors at the truth box by whether the
-                // cell is object (full mask, occluded or not) or background.
-                let full = ko8_visible_mask(
-                    &train_mask,
-                    (
-                        a.bbox.0 + a.bbox.2 / 2.0,
-                        a.bbox.1 + a.bbox.3 / 2.0,
-                        a.bbox.2,
-                        a.bbox.3,
-                    ),
-                    &Mask::new(w, h),
-                )
-                .ok_or("empty")?;
-                let mut tf = Vec::new();
-                cell_truth(&g, &IntegralMask::new(&full), &mut tf);
-                for i in 0..tg.len() {
-                    let k = match (tf[i], tg[i], v[i]) {
-                        (false, _, true) => 0,    // background called visible
-                        (false, _, false) => 1,   // background called occluded
-                        (true, true, false) => 2, // visible object called occluded
-                        (true, false, true) => 3, // occluded object called visible
-                        (true, true, true) => 4,
-                        (true, false, false) => 5,
-                    };
-                    split[k] += 1;
-                }
-                acc[6] += err(&raw_mask(&g, &tg, w, h), truth);
+            if let Some(t) = at_truth_box(&det, &pyr, a, &train_mask, &mut split)? {
+                best_iou += t[0];
+                acc[5] += t[1];
+                acc[6] += t[2];
             }
             // Prior-only labels at the detected box (the mask the model
             // expects without looking at the cells): w_prior > 0 means
@@ -282,4 +228,87 @@ fn silhouette(g: &CellGrid, labels: &[bool], sil: &Mask) -> Mask {
         }
     }
     m
+}
+
+/// The model's labels at the template location that best covers the
+/// truth box: that location's box IoU, the model's and the truth cells'
+/// errors there; `split` counts the model's cell errors by kind.
+fn at_truth_box(
+    det: &Detector,
+    pyr: &FeaturePyramid,
+    a: &Annotation,
+    train_mask: &Mask,
+    split: &mut [usize; 6],
+) -> Result<Option<[f64; 3]>, Box<dyn std::error::Error>> {
+    let truth = &a.visible;
+    let vis = IntegralMask::new(truth);
+    let (w, h) = (pyr.image_width, pyr.image_height);
+    let best = det
+        .locations(pyr, 0.5)
+        .into_iter()
+        .map(|l| (box_iou(det.grid(pyr, &l).pixel_box(), a.bbox), l))
+        .max_by(|x, y| x.0.total_cmp(&y.0));
+    let Some((biou, l)) = best else {
+        return Ok(None);
+    };
+    let g: CellGrid = det.grid(pyr, &l);
+    let (mut p, _, _) = det.problem_at(pyr, &l);
+    let mut graph = Graph::new();
+    let mut v = Vec::new();
+    p.solve(&mut graph, &mut v);
+    let model_err = err(&raw_mask(&g, &v, w, h), truth);
+    let mut tg = Vec::new();
+    cell_truth(&g, &vis, &mut tg);
+    // Split the model's errors at the truth box by whether the cell is
+    // object (full mask, occluded or not) or background.
+    let full = ko8_visible_mask(
+        train_mask,
+        (
+            a.bbox.0 + a.bbox.2 / 2.0,
+            a.bbox.1 + a.bbox.3 / 2.0,
+            a.bbox.2,
+            a.bbox.3,
+        ),
+        &Mask::new(w, h),
+    )
+    .ok_or("empty")?;
+    let mut tf = Vec::new();
+    cell_truth(&g, &IntegralMask::new(&full), &mut tf);
+    for i in 0..tg.len() {
+        let k = match (tf[i], tg[i], v[i]) {
+            (false, _, true) => 0,    // background called visible
+            (false, _, false) => 1,   // background called occluded
+            (true, true, false) => 2, // visible object called occluded
+            (true, false, true) => 3, // occluded object called visible
+            (true, true, true) => 4,
+            (true, false, false) => 5,
+        };
+        split[k] += 1;
+    }
+    Ok(Some([
+        biou,
+        model_err,
+        err(&raw_mask(&g, &tg, w, h), truth),
+    ]))
+}
+
+/// The table's header.
+fn print_header() {
+    println!(
+        "{:10} {:>5} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6}",
+        "object",
+        "n",
+        "boxIoU",
+        "raw",
+        "ref",
+        "orc@det",
+        "orcRef",
+        "mdl@gt",
+        "orc@gt",
+        "full@d",
+        "TP",
+        "FN",
+        "FP",
+        "TN"
+    );
 }
