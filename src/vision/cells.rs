@@ -403,18 +403,62 @@ pub struct LearnedCells {
 
 static BUILTIN: OnceLock<Result<LearnedCells, VisionError>> = OnceLock::new();
 
+/// Environment variable naming a backbone file (as
+/// `scripts/convert_efficientnet_lite0.py` writes them) to use instead of
+/// the built-in one: the richer cells' experiments (issue 62) train and
+/// score with it. A model records its projection's fingerprint, so one
+/// trained on such cells loads only where the same files are named.
+pub const BACKBONE_ENV: &str = "SDHOP_CELLS_BACKBONE";
+/// Environment variable naming the projection file that goes with
+/// [`BACKBONE_ENV`]'s backbone (`sdhop-train cells --out`).
+pub const PROJECTION_ENV: &str = "SDHOP_CELLS_PROJECTION";
+
+/// The backbone of [`BACKBONE_ENV`] when it is set, else the built-in one.
+pub fn backbone_in_use() -> Result<Backbone, VisionError> {
+    let backbone = match std::env::var_os(BACKBONE_ENV) {
+        Some(path) => Backbone::load(std::path::Path::new(&path))
+            .map_err(|e| bad(format!("{BACKBONE_ENV}: {e}")))?,
+        None => Backbone::from_bytes(BACKBONE_FILE)
+            .map_err(|e| bad(format!("built-in backbone: {e}")))?,
+    };
+    if backbone.stride != CELL_SIZE && backbone.stride != 2 * CELL_SIZE {
+        return Err(bad(format!(
+            "backbone {} has stride {}: cells need {CELL_SIZE} or {}",
+            backbone.name,
+            backbone.stride,
+            2 * CELL_SIZE
+        )));
+    }
+    Ok(backbone)
+}
+
 impl LearnedCells {
-    /// The backbone and projection built into the binary (parsed once).
+    /// The backbone and projection built into the binary (parsed once),
+    /// or those [`BACKBONE_ENV`] and [`PROJECTION_ENV`] name.
     pub fn builtin() -> Result<&'static LearnedCells, VisionError> {
         BUILTIN
             .get_or_init(|| {
-                let backbone = Backbone::from_bytes(BACKBONE_FILE)
-                    .map_err(|e| bad(format!("built-in backbone: {e}")))?;
-                let projection = CellProjection::from_bytes(PROJECTION_FILE)?;
-                if projection.channels != backbone.channels || backbone.stride != CELL_SIZE {
+                let backbone = backbone_in_use()?;
+                let projection = match std::env::var_os(PROJECTION_ENV) {
+                    Some(path) => {
+                        let bytes = std::fs::read(&path).map_err(|e| {
+                            bad(format!("{PROJECTION_ENV} {}: {e}", path.to_string_lossy()))
+                        })?;
+                        CellProjection::from_bytes(&bytes)?
+                    }
+                    None => CellProjection::from_bytes(PROJECTION_FILE)?,
+                };
+                if projection.channels != backbone.channels {
                     return Err(bad(format!(
-                        "built-in backbone ({} channels, stride {}) and projection ({} channels) do not fit",
-                        backbone.channels, backbone.stride, projection.channels
+                        "backbone {} ({} channels) and cell projection ({} channels) do not fit{}",
+                        backbone.name,
+                        backbone.channels,
+                        projection.channels,
+                        if std::env::var_os(BACKBONE_ENV).is_some() {
+                            format!(": set {PROJECTION_ENV} to the projection `sdhop-train cells` fitted to it")
+                        } else {
+                            String::new()
+                        }
                     )));
                 }
                 Ok(LearnedCells {
@@ -424,6 +468,16 @@ impl LearnedCells {
             })
             .as_ref()
             .map_err(Clone::clone)
+    }
+
+    /// The backbone's features of `img` on the cell grid
+    /// ([`grid_features`]).
+    pub fn features_until(
+        &self,
+        img: &ColorImage,
+        deadline: Deadline,
+    ) -> Result<FeatureMap, VisionError> {
+        grid_features(&self.backbone, img, deadline)
     }
 
     /// The cells of `img`: `floor(w / 8) x floor(h / 8)` of them, like
@@ -439,9 +493,68 @@ impl LearnedCells {
         if w == 0 || h == 0 {
             return HogMap::from_raw(w, h, Vec::new());
         }
-        let map = self.backbone.forward_until(img, deadline)?;
+        let map = self.features_until(img, deadline)?;
         self.projection.project(&map, w, h)
     }
+}
+
+/// The backbone's features of `img` on the cell grid: as they are at
+/// stride 8; at stride 16 interpolated (bilinearly, between the
+/// centres of the coarse cells, clamped at the borders) onto the
+/// 8-pixel cells.
+pub fn grid_features(
+    backbone: &Backbone,
+    img: &ColorImage,
+    deadline: Deadline,
+) -> Result<FeatureMap, VisionError> {
+    let map = backbone.forward_until(img, deadline)?;
+    if backbone.stride == CELL_SIZE {
+        return Ok(map);
+    }
+    let k = backbone
+        .last_halving_kernel()
+        .ok_or_else(|| bad("a stride-16 backbone without a stride-2 block"))?;
+    let xs = fine_taps(img.width(), k, map.width);
+    let ys = fine_taps(img.height(), k, map.height);
+    let (w, h) = (xs.len(), ys.len());
+    let mut out = FeatureMap {
+        channels: map.channels,
+        width: w,
+        height: h,
+        data: vec![0.0; map.channels * w * h],
+    };
+    for c in 0..map.channels {
+        let src = &map.data[c * map.width * map.height..][..map.width * map.height];
+        let dst = &mut out.data[c * w * h..][..w * h];
+        for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
+            let (r0, r1) = (&src[y0 * map.width..], &src[y1 * map.width..]);
+            for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
+                let top = r0[x0] + fx * (r0[x1] - r0[x0]);
+                let bottom = r1[x0] + fx * (r1[x1] - r1[x0]);
+                dst[y * w + x] = top + fy * (bottom - top);
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// For each 8-pixel cell of an axis of `n` pixels (`2 * coarse` of them),
+/// the two stride-16 cells it lies between and its share of the second.
+/// The last stride-2 block (kernel `k`) reads its input's `ceil(n / 8)`
+/// cells with "same" padding `top` before, so its output cell `j` is
+/// centred on input cell `2j - top + (k - 1) / 2`.
+fn fine_taps(n: usize, k: usize, coarse: usize) -> Vec<(usize, usize, f32)> {
+    let (_, top) = super::cnn::same_padding(n.div_ceil(CELL_SIZE), k, 2);
+    let last = coarse.saturating_sub(1);
+    (0..2 * coarse)
+        .map(|i| {
+            let u = ((i + top) as f32 - ((k - 1) / 2) as f32) / 2.0;
+            let u = u.clamp(0.0, last as f32);
+            let j0 = (u.floor() as usize).min(last);
+            let j1 = (j0 + 1).min(last);
+            (j0, j1, u - j0 as f32)
+        })
+        .collect()
 }
 
 /// Level pixels above which learned cells are computed strip by strip
@@ -468,32 +581,35 @@ impl LearnedCells {
         if cw == 0 || ch == 0 {
             return HogMap::from_raw(cw, ch, Vec::new());
         }
-        let stride = self.backbone.stride;
-        // The margin: half the receptive field and one cell more, in whole
-        // cells, so that strips start on the cell grid.
-        let margin = (self.backbone.receptive_field() / 2 + stride).div_ceil(stride) * stride;
+        // Strips start and keep heights on the backbone's grid (its
+        // stride, 8 or 16 pixels), in whole cells.
+        let align = self.backbone.stride;
+        let per = align / CELL_SIZE;
+        // The margin: half the receptive field and one grid step more.
+        let margin = (self.backbone.receptive_field() / 2 + align).div_ceil(align) * align;
         let rows = (strip_pixels / lw)
             .saturating_sub(2 * margin)
-            .max(4 * stride)
-            / stride;
-        let rest = lh % stride;
+            .max(4 * align)
+            / align
+            * per;
+        let rest = lh % align;
         let mut data = Vec::with_capacity(cw * ch * HOG_STRIDE);
         for c0 in (0..ch).step_by(rows) {
             let c1 = (c0 + rows).min(ch);
-            let y0 = (c0 * stride).saturating_sub(margin);
-            // Heights congruent to the level's modulo the stride: every
+            let y0 = (c0 * CELL_SIZE).saturating_sub(margin);
+            // Heights congruent to the level's modulo the grid: every
             // stride-2 layer then pads the strip's top as the level's.
-            let need = c1 * stride + margin - y0;
-            let height = need.saturating_sub(rest).div_ceil(stride) * stride + rest;
+            let need = c1 * CELL_SIZE + margin - y0;
+            let height = need.saturating_sub(rest).div_ceil(align) * align + rest;
             let y1 = (y0 + height).min(lh);
             let strip = if (lw, lh) == (img.width(), img.height()) {
                 img.rows(y0, y1)?
             } else {
                 img.resize_smooth_rows(lw, lh, y0, y1)?
             };
-            let map = self.backbone.forward_until(&strip, deadline)?;
-            let cells = self.projection.project(&map, cw, (y1 - y0) / stride)?;
-            let first = c0 - y0 / stride;
+            let map = self.features_until(&strip, deadline)?;
+            let cells = self.projection.project(&map, cw, (y1 - y0) / CELL_SIZE)?;
+            let first = c0 - y0 / CELL_SIZE;
             data.extend_from_slice(
                 &cells.raw()[first * cw * HOG_STRIDE..(first + c1 - c0) * cw * HOG_STRIDE],
             );
@@ -572,6 +688,86 @@ mod tests {
                 .unwrap_err(),
             VisionError::DeadlineExceeded
         );
+    }
+
+    /// Lite0's blocks 0-5 (80 channels at stride 16) and their projection,
+    /// as committed for the richer cells' experiments.
+    fn stride_16_cells() -> LearnedCells {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/models/backbones/");
+        let backbone = Backbone::load(std::path::Path::new(&format!(
+            "{dir}efficientnet_lite0_s16_b6.safetensors"
+        )))
+        .unwrap();
+        let bytes =
+            std::fs::read(format!("{dir}efficientnet_lite0_s16_b6_cells.safetensors")).unwrap();
+        LearnedCells {
+            backbone,
+            projection: CellProjection::from_bytes(&bytes).unwrap(),
+        }
+    }
+
+    #[test]
+    fn stride_16_features_are_interpolated_onto_the_cell_grid() {
+        let cells = stride_16_cells();
+        assert_eq!((cells.backbone.stride, cells.backbone.channels), (16, 80));
+        // Odd and even numbers of stride-8 cells (both paddings of the
+        // halving block).
+        for (w, h) in [(100, 75), (97, 130)] {
+            let img = noise_image(w, h, 5);
+            let coarse = cells.backbone.forward(&img);
+            let fine = cells.features_until(&img, Deadline::NONE).unwrap();
+            assert_eq!(
+                (fine.width, fine.height),
+                (2 * w.div_ceil(16), 2 * h.div_ceil(16))
+            );
+            let xs = fine_taps(w, 3, coarse.width);
+            let ys = fine_taps(h, 3, coarse.height);
+            for c in [0, 41, 79] {
+                for (y, &(y0, y1, fy)) in ys.iter().enumerate() {
+                    for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
+                        let v = fine.get(c, x, y);
+                        let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+                            .map(|(a, b)| coarse.get(c, a, b));
+                        let lo = corners.iter().copied().fold(f32::INFINITY, f32::min);
+                        let hi = corners.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                        assert!(v >= lo - 1e-4 && v <= hi + 1e-4, "{v} outside {lo}..{hi}");
+                        // A cell on a coarse centre is the coarse cell.
+                        if fx == 0.0 && fy == 0.0 {
+                            assert_eq!(v, coarse.get(c, x0, y0));
+                        }
+                    }
+                }
+            }
+            // Every coarse cell is some fine cell's centre, or the grid's
+            // edge is clamped to it.
+            assert!(xs.iter().filter(|t| t.2 == 0.0).count() >= coarse.width);
+        }
+        // The coarse cell j is centred on stride-8 cell 2j - top + 1.
+        assert_eq!(fine_taps(64, 3, 4)[3], (1, 2, 0.0));
+        assert_eq!(fine_taps(72, 3, 5)[2], (1, 2, 0.0));
+    }
+
+    #[test]
+    fn strips_of_a_stride_16_level_give_the_whole_levels_cells() {
+        let cells = stride_16_cells();
+        for (w, h, lw, lh, strip) in [(150, 131, 317, 285, 60_000), (203, 170, 173, 149, 40_000)] {
+            let img = noise_image(w, h, 7);
+            let level = img.resize_smooth(lw, lh).unwrap();
+            let whole = cells.cells(&level).unwrap();
+            let strips = cells
+                .level_cells_until(&img, (lw, lh), strip, Deadline::NONE)
+                .unwrap();
+            assert_eq!(
+                (strips.width(), strips.height()),
+                (whole.width(), whole.height())
+            );
+            let worst = strips
+                .raw()
+                .iter()
+                .zip(whole.raw())
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(worst <= 1e-4, "{w}x{h} -> {lw}x{lh}: worst {worst}");
+        }
     }
 
     #[test]

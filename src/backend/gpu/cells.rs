@@ -320,6 +320,12 @@ impl Context {
             return Ok(out);
         }
         let lc = LearnedCells::builtin().map_err(|e| GpuError::Validation(e.to_string()))?;
+        if lc.backbone.stride != crate::vision::hog::CELL_SIZE {
+            return Err(GpuError::Validation(format!(
+                "the GPU computes learned cells of stride-8 backbones only ({} has stride {})",
+                lc.backbone.name, lc.backbone.stride
+            )));
+        }
         if self.learned.is_none() {
             self.learned = Some(LearnedWeights::upload(&self.device, &self.queue, lc)?);
         }
