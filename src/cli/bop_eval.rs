@@ -402,6 +402,8 @@ fn merge_reports(inputs: &[(String, PathBuf)], out: &Path) -> Result<(), Failure
                 row.detect_ms_per_image =
                     (row.detect_ms_per_image * a + v.detect_ms_per_image * b) / n;
                 row.models_dir = format!("{}, {}", row.models_dir, v.models_dir);
+                row.box_ap = row.box_ap.join(&v.box_ap);
+                row.mask_ap = row.mask_ap.join(&v.mask_ap);
                 row.objects.extend(v.objects);
                 row.pose.extend(v.pose);
             }
@@ -452,10 +454,12 @@ mod tests {
                 curve: vec![(0.0, 0.0), (0.5, auc)],
             })
             .collect();
+        let first = objects.first().map_or(0.0, |o| o.auc);
         serde_json::json!({"images": 150, "train_photos": 50, "variants": [{
             "name": "sdhop", "models_dir": "m", "objects": objects, "mean_auc": 0.0,
             "mean_seg_error": 0.0, "mean_seg_error_raw": 0.0,
-            "mean_recall_at_1fppi": 0.0, "detect_ms_per_image": 100.0
+            "mean_recall_at_1fppi": 0.0, "detect_ms_per_image": 100.0,
+            "box_ap": {"ap": first / 2.0, "ap50": first, "ap75": null, "categories": objects.len()}
         }]})
     }
 
@@ -490,6 +494,10 @@ mod tests {
         assert_eq!(rows[0]["objects"][0]["object"], "ape");
         assert!((rows[0]["mean_auc"].as_f64().unwrap() - 0.3).abs() < 1e-12);
         assert!((rows[1]["mean_auc"].as_f64().unwrap() - 0.2).abs() < 1e-12);
+        // COCO AP: the mean over the objects of the rows' reports.
+        assert!((rows[0]["box_ap"]["ap"].as_f64().unwrap() - 0.15).abs() < 1e-12);
+        assert_eq!(rows[0]["box_ap"]["categories"], 2);
+        assert!(rows[0]["box_ap"]["ap75"].is_null());
         assert!(out.join("recall_fppi.png").exists());
         let twice = vec![
             ("photos".to_string(), cat.clone()),

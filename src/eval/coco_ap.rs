@@ -42,6 +42,29 @@ pub struct ApFigures {
     pub categories: usize,
 }
 
+impl ApFigures {
+    /// The figures of two reports on disjoint categories of the same
+    /// photographs joined: COCO's AP is the mean over categories of each
+    /// category's AP, and a category's AP depends on its own detections
+    /// only, so the join is the mean weighted by the categories (a figure
+    /// absent from one side is the other's).
+    pub fn join(&self, other: &ApFigures) -> ApFigures {
+        let (a, b) = (self.categories as f64, other.categories as f64);
+        let mean = |x: Option<f64>, y: Option<f64>| match (x, y) {
+            (Some(x), Some(y)) if a + b > 0.0 => Some((x * a + y * b) / (a + b)),
+            (x, None) => x,
+            (None, y) => y,
+            (Some(x), Some(_)) => Some(x),
+        };
+        ApFigures {
+            ap: mean(self.ap, other.ap),
+            ap50: mean(self.ap50, other.ap50),
+            ap75: mean(self.ap75, other.ap75),
+            categories: self.categories + other.categories,
+        }
+    }
+}
+
 /// COCO's AP of `found` against `truths`; `overlap(d, t)` is the IoU of
 /// detection `d` and truth `t` (indices into the slices), asked only for
 /// pairs of the same image and category.
