@@ -138,6 +138,10 @@ fn a_model_trained_from_a_mesh_finds_the_object_in_new_renders() {
         "80",
         "--components",
         "2",
+        // The mechanics on HOG cells, an eighth of the learned cells'
+        // cost (the library test below trains the route's default).
+        "--features",
+        "hog",
         "--negatives",
         "6",
         "--max-passes",
@@ -354,6 +358,10 @@ fn two_meshes_trained_jointly_detect_each_object_under_its_own_label() {
         "60",
         "--components",
         "2",
+        // The mechanics on HOG cells, an eighth of the learned cells'
+        // cost (the library test below trains the route's default).
+        "--features",
+        "hog",
         "--negatives",
         "6",
         "--max-passes",

@@ -113,9 +113,12 @@ pub const MESH_NEGATIVES: usize = 50;
 /// Training photographs made from each view with `from_views`.
 pub const VIEW_PHOTOS: usize = 3;
 
-/// The cells of the mesh alone: HOG (learned cells were not measured on
-/// this route).
-pub const MESH_FEATURES: FeatureKind = FeatureKind::Hog;
+/// The cells of the mesh alone: the learned ones. LM-O, each object's
+/// model alone on all 200 development photographs (`scripts/lmo_mesh_alone.sh
+/// OUT --features cnn`): ape 0.323, cat 0.289, duck 0.614 against HOG's
+/// 0.084, 0.000 and 0.345 (docs/benchmarks.md, 2026-11-29), in 7-11
+/// minutes and 3.3 GB per object.
+pub const MESH_FEATURES: FeatureKind = FeatureKind::Cnn;
 
 /// What [`train_mesh`] made.
 pub struct MeshTraining {

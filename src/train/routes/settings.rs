@@ -44,7 +44,7 @@ pub struct TrainSettings {
     /// What a cell's vector is: `hog` (Felzenszwalb's HOG) or `cnn` (the
     /// pretrained EfficientNet-Lite0 backbone's cells, built in; see
     /// docs/training.md, "Learned cells"). Default: `cnn` for `train
-    /// --coco`, `hog` for the CMU_KO8 routes and `mesh` (what won on the
+    /// --coco` and `mesh`, `hog` for the CMU_KO8 routes (what won on the
     /// development data of each).
     #[arg(long, value_parser = FeatureKind::parse)]
     pub features: Option<FeatureKind>,
