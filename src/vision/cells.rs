@@ -646,6 +646,32 @@ mod tests {
         }
     }
 
+    /// The cells of a noise image's `lw x lh` level computed in strips of
+    /// `strip` pixels are those of the whole level.
+    fn strips_match_the_whole(
+        cells: &LearnedCells,
+        (w, h): (usize, usize),
+        (lw, lh): (usize, usize),
+        strip: usize,
+    ) {
+        let img = noise_image(w, h, 7);
+        let level = img.resize_smooth(lw, lh).unwrap();
+        let whole = cells.cells(&level).unwrap();
+        let strips = cells
+            .level_cells_until(&img, (lw, lh), strip, Deadline::NONE)
+            .unwrap();
+        assert_eq!(
+            (strips.width(), strips.height()),
+            (whole.width(), whole.height())
+        );
+        let worst = strips
+            .raw()
+            .iter()
+            .zip(whole.raw())
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(worst <= 1e-4, "{w}x{h} -> {lw}x{lh}: worst {worst}");
+    }
+
     #[test]
     fn strips_of_a_level_give_the_whole_levels_cells() {
         let cells = LearnedCells::builtin().unwrap();
@@ -658,22 +684,7 @@ mod tests {
             (203, 170, 173, 149, 40_000),
             (96, 77, 211, 203, 1 << 30),
         ] {
-            let img = noise_image(w, h, 7);
-            let level = img.resize_smooth(lw, lh).unwrap();
-            let whole = cells.cells(&level).unwrap();
-            let strips = cells
-                .level_cells_until(&img, (lw, lh), strip, Deadline::NONE)
-                .unwrap();
-            assert_eq!(
-                (strips.width(), strips.height()),
-                (whole.width(), whole.height())
-            );
-            let worst = strips
-                .raw()
-                .iter()
-                .zip(whole.raw())
-                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-            assert!(worst <= 1e-4, "{w}x{h} -> {lw}x{lh}: worst {worst}");
+            strips_match_the_whole(cells, (w, h), (lw, lh), strip);
         }
         // Rows of a resize are the resize's rows.
         let img = noise_image(90, 70, 3);
@@ -751,22 +762,7 @@ mod tests {
     fn strips_of_a_stride_16_level_give_the_whole_levels_cells() {
         let cells = stride_16_cells();
         for (w, h, lw, lh, strip) in [(150, 131, 317, 285, 60_000), (203, 170, 173, 149, 40_000)] {
-            let img = noise_image(w, h, 7);
-            let level = img.resize_smooth(lw, lh).unwrap();
-            let whole = cells.cells(&level).unwrap();
-            let strips = cells
-                .level_cells_until(&img, (lw, lh), strip, Deadline::NONE)
-                .unwrap();
-            assert_eq!(
-                (strips.width(), strips.height()),
-                (whole.width(), whole.height())
-            );
-            let worst = strips
-                .raw()
-                .iter()
-                .zip(whole.raw())
-                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-            assert!(worst <= 1e-4, "{w}x{h} -> {lw}x{lh}: worst {worst}");
+            strips_match_the_whole(&cells, (w, h), (lw, lh), strip);
         }
     }
 
