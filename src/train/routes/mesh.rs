@@ -115,9 +115,10 @@ pub const VIEW_PHOTOS: usize = 3;
 
 /// The cells of the mesh alone: the learned ones. LM-O, each object's
 /// model alone on all 200 development photographs (`scripts/lmo_mesh_alone.sh
-/// OUT --features cnn`): ape 0.323, cat 0.289, duck 0.614 against HOG's
-/// 0.084, 0.000 and 0.345 (docs/benchmarks.md, 2026-11-29), in 7-11
-/// minutes and 3.3 GB per object.
+/// OUT --features cnn`): ape 0.323, cat 0.289, duck 0.614, glue 0.142
+/// against HOG's 0.084, 0.000, 0.423 and 0.000 trained and scored the
+/// same way (docs/benchmarks.md, 2026-11-29), in 7-11 minutes and 3.3 GB
+/// per object.
 pub const MESH_FEATURES: FeatureKind = FeatureKind::Cnn;
 
 /// What [`train_mesh`] made.
