@@ -438,15 +438,21 @@ fn scan_model<'a>(
     })
 }
 
+/// Colour agreement at which a detection keeps its whole SD-HOP score
+/// (the agreement itself reaches [`crate::vision::shape::AGREEMENT_CLAMP`]).
+pub const COLOUR_FULL_AGREEMENT: f64 = 1.0;
+
 /// What a model's colour weight adds to a detection's score: the weight
-/// times the colour agreement where the colours disagree (a negative
-/// agreement), nothing where they agree. A score is never raised above
-/// its SD-HOP score, so that the search's pruning by the threshold on the
-/// SD-HOP score is exact for the score answered, and an answer at a
-/// threshold holds exactly the detections a lower threshold finds at or
-/// above it.
+/// times how far the colour agreement falls short of
+/// [`COLOUR_FULL_AGREEMENT`], never more than 0. Colours that agree
+/// better rank a detection higher, as the colour weight was chosen (by
+/// the mesh route and `join`, both signs counting), yet a score is never
+/// raised above its SD-HOP score, so that the search's pruning by the
+/// threshold on the SD-HOP score is exact for the score answered, and an
+/// answer at a threshold holds exactly the detections a lower threshold
+/// finds at or above it.
 pub fn colour_term(weight: f64, agreement: f64) -> f64 {
-    weight * agreement.min(0.0)
+    weight * (agreement.min(COLOUR_FULL_AGREEMENT) - COLOUR_FULL_AGREEMENT)
 }
 
 /// A detection's answer with its masks (and its colour agreement where the
@@ -475,15 +481,15 @@ fn detection_json(
                 params.colour_weight,
                 colour_agreement(&pyr.image, &refined, oc, ic),
             );
-            // Answers true to their threshold: the score with its colour
-            // term is the one the threshold bounds.
-            if score < params.threshold {
-                return Ok(None);
-            }
             Some((raw, refined))
         }
         _ => None,
     };
+    // Answers true to their threshold: the score with its colour term is
+    // the one the threshold bounds.
+    if score < params.threshold {
+        return Ok(None);
+    }
     let (raw, refined) = if opts.masks == MaskMode::None {
         (None, None)
     } else {
@@ -611,4 +617,22 @@ pub fn overlay(img: &ColorImage, resp: &DetectResponse) -> image::RgbImage {
 pub fn uses_low_rank() -> bool {
     static MODE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *MODE.get_or_init(|| std::env::var("SDHOP_STAGE1").as_deref() == Ok("low-rank"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{colour_term, COLOUR_FULL_AGREEMENT};
+
+    #[test]
+    fn the_colour_term_ranks_by_agreement_and_never_raises_a_score() {
+        let full = COLOUR_FULL_AGREEMENT;
+        // Better agreement ranks higher, by the weight times the gain.
+        assert!((colour_term(0.5, 0.4) - colour_term(0.5, -0.6) - 0.5).abs() < 1e-12);
+        // Full agreement keeps the SD-HOP score; more counts no further.
+        assert_eq!(colour_term(0.5, full), 0.0);
+        assert_eq!(colour_term(0.5, 2.5), 0.0);
+        // Disagreeing colours lower it.
+        assert!((colour_term(0.5, -2.0) + 0.5 * (2.0 + full)).abs() < 1e-12);
+        assert_eq!(colour_term(0.0, -2.5), 0.0);
+    }
 }

@@ -272,7 +272,10 @@ fn choose_colour_weight(
     let table: Vec<(f64, f64)> = COLOUR_WEIGHTS
         .iter()
         .map(|&w| {
-            let ranked: Vec<(f64, bool)> = found.iter().map(|&(s, c, t)| (s + w * c, t)).collect();
+            let ranked: Vec<(f64, bool)> = found
+                .iter()
+                .map(|&(s, c, t)| (s + crate::pipeline::colour_term(w, c), t))
+                .collect();
             let (area, _, _) = auc_curve(ranked, n_pos, n_images);
             (w, area)
         })

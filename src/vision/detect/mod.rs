@@ -66,13 +66,13 @@ pub struct DetectParams {
     /// Skip locations whose bound shows they cannot matter.
     pub prune: bool,
     pub refine: RefineParams,
-    /// Weight of the colour agreement added to a detection's score where
-    /// it is negative: the mean over its visible mask of the log ratio of
-    /// the object's learned colours to the image's (see
-    /// [`crate::vision::shape::colour_agreement`] and
-    /// [`crate::pipeline::colour_term`]); 0 (the default): the SD-HOP score
-    /// alone. The term only lowers a score, and the threshold applies to
-    /// the score with it.
+    /// Weight of the colour agreement in a detection's score: the mean
+    /// over its visible mask of the log ratio of the object's learned
+    /// colours to the image's (see
+    /// [`crate::vision::shape::colour_agreement`]), counted by how far it
+    /// falls short of full agreement ([`crate::pipeline::colour_term`]);
+    /// 0 (the default): the SD-HOP score alone. The term only lowers a
+    /// score, and the threshold applies to the score with it.
     #[serde(default)]
     pub colour_weight: f64,
     /// Only boxes about here (a request's setting, never a model's).
