@@ -755,5 +755,11 @@ fn join_cli_appends_components_and_refuses_bad_input() {
     refused(&out, &[], "already a joined model");
     refused(&base, &["--offset=abc"], "--offset");
     refused(&base, &["--check-folds", &p(&add)], "--ko8");
+    // The single-pose guard needs photographs that trained neither side.
+    refused(
+        &base,
+        &["--check-folds", &p(&add), "--ko8", &p(&dir)],
+        "--guard-folds",
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -38,11 +38,19 @@ pub(crate) struct JoinArgs {
     /// with each of `--colour-weights`, by the mean of AUC and
     /// cross-object AUC on each fold's held-out box-only photographs,
     /// averaged over the folds. A choice must also keep the single-pose
-    /// photographs' figures (with `--add`'s components) and gain at least
-    /// `--min-gain` over the base model as it is, which is kept otherwise.
-    /// Replaces `--offset` and `--colour-weight`.
+    /// figures of `--guard-folds` (with `--add`'s components) and gain at
+    /// least `--min-gain` over the base model as it is, which is kept
+    /// otherwise. Replaces `--offset` and `--colour-weight`.
     #[arg(long, value_delimiter = ',', requires = "ko8")]
     pub(crate) check_folds: Vec<PathBuf>,
+    /// The single-pose guard of `--check-folds`: a folder of
+    /// cross-validation models (`sdhop-train cv --ko8 DATA --folds K
+    /// --save-models DIR`, single-pose models trained as `--base`'s). Each
+    /// fold's held-out single-pose photographs are scored with that fold's
+    /// models joined as each setting says, so the guard never scores a
+    /// photograph that trained what it judges.
+    #[arg(long, value_name = "DIR", requires = "check_folds")]
+    pub(crate) guard_folds: Option<PathBuf>,
     /// Offsets `--check-folds` chooses among (besides not joining).
     /// Default 0,0.25,0.5.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
@@ -96,6 +104,7 @@ impl JoinArgs {
             objects: self.objects.clone(),
             ko8: self.ko8.clone(),
             check_folds: self.check_folds.clone(),
+            guard_folds: self.guard_folds.clone(),
             offsets: or(&self.offsets, d.offsets),
             colour_weights: or(&self.colour_weights, d.colour_weights),
             thresholds: or(&self.thresholds, d.thresholds),

@@ -447,6 +447,31 @@ pub fn fold_dir(dir: &Path, f: usize) -> std::path::PathBuf {
     dir.join(format!("fold-{f}"))
 }
 
+/// File in each fold folder of `cv --save-models` naming its fold and the
+/// number of folds, so that a later check (`join`'s single-pose guard)
+/// takes the same photographs out.
+pub const FOLD_FILE: &str = "fold.json";
+
+/// Which fold of how many a folder's models left out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct FoldOf {
+    pub fold: usize,
+    pub folds: usize,
+}
+
+/// Writes [`FOLD_FILE`] into `dir`.
+pub fn write_fold_file(dir: &Path, fold: FoldOf) -> Result<(), TrainError> {
+    let p = dir.join(FOLD_FILE);
+    let text = serde_json::to_string(&fold).map_err(|e| TrainError::Io {
+        path: p.display().to_string(),
+        source: std::io::Error::other(e),
+    })?;
+    std::fs::write(&p, text).map_err(|source| TrainError::Io {
+        path: p.display().to_string(),
+        source,
+    })
+}
+
 /// The models of fold `f`, trained or loaded.
 fn fold_models(
     data: &Ko8Data,
@@ -488,6 +513,13 @@ fn fold_models(
         for (m, _) in &trained {
             m.save(&d.join(format!("{}.safetensors", m.meta.name)))?;
         }
+        write_fold_file(
+            &d,
+            FoldOf {
+                fold: fold.0,
+                folds: fold.1,
+            },
+        )?;
     }
     Ok(trained.into_iter().map(|(m, r)| (m, Some(r))).collect())
 }

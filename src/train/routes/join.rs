@@ -7,6 +7,7 @@
 //! cross-validation over its box-only photographs, guarded by the
 //! single-pose photographs.
 
+use super::join_guard::SinglePoseGuard;
 use super::photos::fold_range;
 use super::{load_model_dir, RouteError};
 use crate::data::Sample;
@@ -25,6 +26,10 @@ pub struct JoinSettings {
     pub objects: Vec<String>,
     pub ko8: Option<PathBuf>,
     pub check_folds: Vec<PathBuf>,
+    /// Single-pose models of a cross-validation (`cv --save-models DIR`):
+    /// the single-pose guard scores each fold's held-out photographs with
+    /// that fold's models ([`super::join_guard`]).
+    pub guard_folds: Option<PathBuf>,
     pub offsets: Vec<f64>,
     pub colour_weights: Vec<f64>,
     pub thresholds: Vec<f64>,
@@ -43,6 +48,7 @@ impl Default for JoinSettings {
             objects: Vec::new(),
             ko8: None,
             check_folds: Vec::new(),
+            guard_folds: None,
             offsets: vec![0.0, 0.25, 0.5],
             colour_weights: vec![0.0, 0.25, 0.5],
             thresholds: vec![-0.5, -0.25],
@@ -114,7 +120,7 @@ fn apply(m: &Model, add: Option<&Model>, setting: Setting) -> Result<Model, Rout
 
 /// `base`'s models each in its setting (`None`: unchanged), each with
 /// `add`'s model of its object.
-fn applied_each(
+pub(super) fn applied_each(
     base: &[Model],
     add: &[Model],
     settings: &[Option<Setting>],
@@ -219,6 +225,13 @@ fn choose_settings(
             "--offsets and --thresholds must be finite numbers, --colour-weights finite and >= 0",
         ));
     }
+    let guard_dir = args.guard_folds.as_ref().ok_or_else(|| {
+        RouteError::input(
+            "--check-folds needs --guard-folds DIR: single-pose models of a cross-validation \
+             (`sdhop-train cv --ko8 DATA --folds K --save-models DIR`), so that the single-pose \
+             guard scores photographs that trained neither side",
+        )
+    })?;
     let data = Ko8Data::load(root, &[])
         .and_then(|d| d.with_multiview(root))
         .map_err(RouteError::input)?;
@@ -226,6 +239,7 @@ fn choose_settings(
         .first()
         .ok_or_else(|| RouteError::input("no base model"))?;
     let settings = settings_grid(args, m0);
+    let guard = SinglePoseGuard::load(guard_dir, &data, base)?;
     let mut cands = blank_candidates(base, &settings);
     let position =
         |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
@@ -262,14 +276,16 @@ fn choose_settings(
         }
         folds.push((fold, images, cache));
     }
-    // The single-pose guard, with the components the output will carry.
-    let images: Vec<&Sample> = data.images.iter().flatten().collect();
-    pb.println(format!("single-pose guard: {} photographs", images.len()));
-    let cache = PyramidCache::default();
-    fill_cache(&cache, &images, m0)?;
+    // The single-pose guard, with the components the output will carry,
+    // on single-pose photographs that trained neither side.
+    pb.println(format!(
+        "single-pose guard: {} held-out photographs of {} fold(s) ({})",
+        guard.photographs(),
+        guard.folds(),
+        guard_dir.display()
+    ));
     for (ci, &setting) in settings.iter().enumerate() {
-        let models = applied_all(base, added, setting)?;
-        let scores = evaluate(&data, &images, &models, &cache)?;
+        let scores = guard.score(&data, added, &vec![Some(setting); base.len()])?;
         for (mi, m) in base.iter().enumerate() {
             cands[mi][ci].single = position(&scores, &m.meta.name).map(|i| {
                 let s = &scores[i];
@@ -338,7 +354,7 @@ fn choose_settings(
             )?);
             pb.inc(1);
         }
-        let single = evaluate(&data, &images, &applied_each(base, added, &chosen)?, &cache)?;
+        let single = guard.score(&data, added, &chosen)?;
         pb.inc(1);
         for (mi, m) in base.iter().enumerate() {
             let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {

@@ -15,6 +15,7 @@
 pub mod coco;
 pub mod cv;
 pub mod join;
+pub mod join_guard;
 pub mod ko8;
 pub mod mesh;
 pub mod mesh_photos;
