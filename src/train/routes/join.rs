@@ -379,6 +379,20 @@ fn choose_settings(
         }
     }
     pb.finish_and_clear();
+    settle_thresholds(&mut out, extra, base, args);
+    Ok(out)
+}
+
+/// Each joined object's highest threshold whose held-out figure stays
+/// within `--threshold-tolerance` of its chosen setting's and whose
+/// single-pose figures pass the guard; `extra` holds each object's
+/// candidates at the higher thresholds, in increasing order.
+fn settle_thresholds(
+    out: &mut [Choice],
+    extra: Vec<Vec<Candidate>>,
+    base: &[Model],
+    args: &JoinSettings,
+) {
     for (c, more) in out.iter_mut().zip(extra) {
         let own = base
             .iter()
@@ -410,7 +424,6 @@ fn choose_settings(
         }
         c.candidates.extend(more);
     }
-    Ok(out)
 }
 
 /// Whether single-pose figures `s` are within `tol` of `p`'s: AUC and
