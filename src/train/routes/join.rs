@@ -4,8 +4,8 @@
 //! single-pose one does not (`sdhop-train join`). With `check_folds`,
 //! whether to join an object, at which offset, with which colour-agreement
 //! weight and at which detection threshold is chosen per object by
-//! cross-validation over its box-only photographs, guarded by the
-//! single-pose photographs.
+//! cross-validation over its box-only photographs, guarded by held-out
+//! single-pose photographs ([`super::join_guard`]).
 
 use super::join_guard::SinglePoseGuard;
 use super::photos::fold_range;
@@ -139,6 +139,14 @@ fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Mo
     applied_each(base, add, &vec![Some(setting); base.len()])
 }
 
+/// How the check detects: the best 20 detections per photograph, as the
+/// acceptance procedure keeps.
+pub(super) const CHECK_DETECT: EvalDetect = EvalDetect {
+    max_detections: 20,
+    threshold: None,
+    pixel: None,
+};
+
 /// Detections of `models` on `images` scored per object.
 fn evaluate(
     data: &Ko8Data,
@@ -147,11 +155,7 @@ fn evaluate(
     cache: &PyramidCache,
 ) -> Result<Vec<ObjectScore>, RouteError> {
     let refs: Vec<&Model> = models.iter().collect();
-    let how = EvalDetect {
-        max_detections: 20,
-        ..EvalDetect::default()
-    };
-    let responses = detect_all(images, &refs, cache, how).map_err(RouteError::input)?;
+    let responses = detect_all(images, &refs, cache, CHECK_DETECT).map_err(RouteError::input)?;
     Ok(score(data, images, &responses).objects)
 }
 

@@ -7,12 +7,12 @@
 //! --save-models DIR`), joined as the setting says, and pools the
 //! responses of the folds before scoring them, as `cv` does.
 
-use super::join::{applied_each, Setting};
+use super::join::{applied_each, Setting, CHECK_DETECT};
 use super::{load_model_dir, RouteError};
 use crate::data::Sample;
 use crate::eval::detection::ObjectScore;
 use crate::model::Model;
-use crate::train::ko8::{detect_all, fold_dir, score, EvalDetect, FoldOf, Ko8Data, FOLD_FILE};
+use crate::train::ko8::{detect_all, fold_dir, score, FoldOf, Ko8Data, FOLD_FILE};
 use crate::train::{progress_bar, PyramidCache};
 use std::path::Path;
 
@@ -108,17 +108,14 @@ impl<'a> SinglePoseGuard<'a> {
         add: &[Model],
         settings: &[Option<Setting>],
     ) -> Result<Vec<ObjectScore>, RouteError> {
-        let how = EvalDetect {
-            max_detections: 20,
-            ..EvalDetect::default()
-        };
         let mut images = Vec::new();
         let mut responses = Vec::new();
         for f in &self.folds {
             let models = applied_each(&f.base, add, settings)?;
             let refs: Vec<&Model> = models.iter().collect();
-            responses
-                .extend(detect_all(&f.images, &refs, &f.cache, how).map_err(RouteError::input)?);
+            responses.extend(
+                detect_all(&f.images, &refs, &f.cache, CHECK_DETECT).map_err(RouteError::input)?,
+            );
             images.extend(f.images.iter().copied());
         }
         Ok(score(data, &images, &responses).objects)
