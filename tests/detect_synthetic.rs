@@ -603,3 +603,41 @@ fn low_rank_stage_one_gives_the_same_detections() {
         }
     }
 }
+
+/// The fast pyramid (cells computed every fifth level, the rest resampled)
+/// against the exact one, on the fixed scenes: the same object found, the
+/// top boxes within IoU 0.7 of each other and of the truth within 0.6 (the
+/// stated tolerance of the approximation; issue 63). Scores are not
+/// compared: a model trained on exact cells scores lower on resampled
+/// ones (the hand-built model here 12.8 against 9.5 on one scene), which
+/// is why models are trained on the pyramid they scan.
+#[test]
+fn the_fast_pyramid_finds_what_the_exact_one_finds() {
+    let model = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let detector = Detector::new(&model.views).unwrap();
+    let exact = model.meta.pyramid;
+    let fast = sdhop::vision::pyramid::PyramidParams {
+        computed_every: 5,
+        ..exact
+    };
+    let p = DetectParams {
+        max_detections: 1,
+        ..model.meta.detection
+    };
+    for s in scenes(4) {
+        let top = |params| {
+            let pyr = FeaturePyramid::build(&s.image, params, &model.meta.segmentation).unwrap();
+            detector.detect(&pyr, &p).unwrap().0.remove(0)
+        };
+        let (a, b) = (top(&exact), top(&fast));
+        let iou = box_iou(a.bbox, b.bbox);
+        println!(
+            "exact {:.3} fast {:.3} IoU {iou:.3} (truth {:.3})",
+            a.score,
+            b.score,
+            box_iou(b.bbox, s.truth_box)
+        );
+        assert!(iou >= 0.7, "{a:?} vs {b:?}");
+        assert!(box_iou(b.bbox, s.truth_box) >= 0.6);
+    }
+}

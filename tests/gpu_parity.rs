@@ -212,6 +212,7 @@ fn learned_cells_match_the_cpu() {
         max_scale: 1.0,
         min_scale: 0.5,
         features: FeatureKind::Cnn,
+        computed_every: 1,
     };
     let up = PyramidParams {
         max_scale: 2.3,

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::cells::{FeatureKind, LearnedCells, STRIP_PIXELS};
-use super::hog::{HogMap, CELL_SIZE};
+use super::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
 use super::image::ColorImage;
 use super::segment::{segment_until, SegmentParams, Segmentation};
 use super::{Deadline, VisionError};
@@ -24,6 +24,26 @@ pub struct PyramidParams {
     /// learned cells), where it reads as HOG.
     #[serde(default)]
     pub features: FeatureKind,
+    /// Every how many levels the cells are computed from pixels: the
+    /// levels between are resampled (area-weighted) from the cells of the
+    /// computed level above them, Dollár's fast feature pyramids. 1
+    /// computes every level (exact), which files without the field mean;
+    /// learned cells train at [`LEARNED_COMPUTED_EVERY`] by default.
+    #[serde(default = "every_level", skip_serializing_if = "is_every_level")]
+    pub computed_every: u32,
+}
+
+/// Learned cells' default [`PyramidParams::computed_every`] (issue 63):
+/// the backbone runs on every fifth level, two per octave at ten levels
+/// per octave.
+pub const LEARNED_COMPUTED_EVERY: u32 = 5;
+
+fn every_level() -> u32 {
+    1
+}
+
+fn is_every_level(v: &u32) -> bool {
+    *v == 1
 }
 
 impl Default for PyramidParams {
@@ -34,6 +54,7 @@ impl Default for PyramidParams {
             max_scale: 1.0,
             min_scale: 0.5,
             features: FeatureKind::Hog,
+            computed_every: 1,
         }
     }
 }
@@ -49,10 +70,11 @@ impl PyramidParams {
             && self.min_scale.is_finite()
             && self.min_scale > 0.0
             && self.max_scale >= self.min_scale
-            && self.max_scale <= 4.0;
+            && self.max_scale <= 4.0
+            && (1..=MAX_LEVELS as u32).contains(&self.computed_every);
         if !ok {
             return Err(VisionError::InvalidParameter(format!(
-                "pyramid needs 1 <= levels_per_octave <= 64 and 0 < min_scale <= max_scale <= 4, got {self:?}"
+                "pyramid needs 1 <= levels_per_octave <= 64, 0 < min_scale <= max_scale <= 4 and 1 <= computed_every <= {MAX_LEVELS}, got {self:?}"
             )));
         }
         if self.scales().len() > MAX_LEVELS {
@@ -258,39 +280,193 @@ pub fn level_sizes(w: usize, h: usize, params: &PyramidParams) -> Vec<(usize, us
 /// The cells of every level ([`level_sizes`]) of `img`, of the kind
 /// `params` names, levels in parallel; gives up with
 /// [`VisionError::DeadlineExceeded`] once `deadline` has passed (looked at
-/// before each level).
+/// before each level). Only every [`PyramidParams::computed_every`]-th
+/// level is computed from pixels; the others are resampled from the
+/// computed level above ([`fill_between`]).
 pub fn feature_levels(
     img: &ColorImage,
     params: &PyramidParams,
     deadline: Deadline,
 ) -> Result<Vec<(usize, usize, HogMap)>, VisionError> {
     let (w, h) = (img.width(), img.height());
-    level_sizes(w, h, params)
-        .into_par_iter()
-        .map(|(lw, lh)| {
+    let sizes = level_sizes(w, h, params);
+    let every = params.computed_every.max(1) as usize;
+    let computed = sizes
+        .par_iter()
+        .enumerate()
+        .filter(|(l, _)| l % every == 0)
+        .map(|(_, &(lw, lh))| level_cells(img, (lw, lh), params, deadline))
+        .collect::<Result<Vec<_>, _>>()?;
+    fill_between(&sizes, computed, every, deadline)
+}
+
+/// The cells of `img` at level size `lw x lh`, computed from its pixels.
+fn level_cells(
+    img: &ColorImage,
+    (lw, lh): (usize, usize),
+    params: &PyramidParams,
+    deadline: Deadline,
+) -> Result<HogMap, VisionError> {
+    if deadline.passed() {
+        return Err(VisionError::DeadlineExceeded);
+    }
+    // A large level of learned cells, strip by strip.
+    if params.features.in_strips(lw * lh) {
+        let cells = LearnedCells::builtin()?;
+        return cells.level_cells_until(img, (lw, lh), STRIP_PIXELS, deadline);
+    }
+    // The full-size level reads the image itself.
+    if (lw, lh) == (img.width(), img.height()) {
+        return params.features.cells_until(img, deadline);
+    }
+    // HOG levels as ever; learned cells see upsampled levels
+    // interpolated, not in blocks.
+    let resized = params.features.resize_until(img, lw, lh, deadline)?;
+    if deadline.passed() {
+        return Err(VisionError::DeadlineExceeded);
+    }
+    params.features.cells_until(&resized, deadline)
+}
+
+/// Every level of `sizes` from the cells of its every `every`-th level
+/// (`computed`, in order): each level between resampled from the computed
+/// level above it.
+pub fn fill_between(
+    sizes: &[(usize, usize)],
+    computed: Vec<HogMap>,
+    every: usize,
+    deadline: Deadline,
+) -> Result<Vec<(usize, usize, HogMap)>, VisionError> {
+    let every = every.max(1);
+    if computed.len() != sizes.len().div_ceil(every) {
+        return Err(VisionError::InvalidParameter(format!(
+            "{} computed levels for {} levels computed every {every}",
+            computed.len(),
+            sizes.len()
+        )));
+    }
+    if every == 1 {
+        return Ok(sizes
+            .iter()
+            .zip(computed)
+            .map(|(&(lw, lh), m)| (lw, lh, m))
+            .collect());
+    }
+    let resampled = sizes
+        .par_iter()
+        .enumerate()
+        .map(|(l, &(lw, lh))| {
+            if l % every == 0 {
+                return Ok(None);
+            }
             if deadline.passed() {
                 return Err(VisionError::DeadlineExceeded);
             }
-            // A large level of learned cells, strip by strip.
-            if params.features.in_strips(lw * lh) {
-                let cells = LearnedCells::builtin()?;
-                return Ok((
-                    lw,
-                    lh,
-                    cells.level_cells_until(img, (lw, lh), STRIP_PIXELS, deadline)?,
-                ));
+            let (sw, _) = sizes[l - l % every];
+            let ratio = sw as f64 / lw as f64;
+            resample_cells(&computed[l / every], lw, lh, ratio).map(Some)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut computed = computed.into_iter();
+    sizes
+        .iter()
+        .zip(resampled)
+        .map(|(&(lw, lh), r)| {
+            let m = match r {
+                Some(m) => m,
+                None => computed.next().ok_or_else(|| {
+                    VisionError::InvalidParameter("a computed level missing".into())
+                })?,
+            };
+            Ok((lw, lh, m))
+        })
+        .collect()
+}
+
+/// Every level's cells as [`feature_levels`] gives them, from the cells of
+/// every level computed from pixels (`all`, as a compute backend that
+/// computes every level returns them): the levels
+/// [`PyramidParams::computed_every`] skips are replaced by their
+/// resampling, so that both paths give the same cells.
+pub fn approximate_levels(
+    (w, h): (usize, usize),
+    params: &PyramidParams,
+    all: Vec<HogMap>,
+    deadline: Deadline,
+) -> Result<Vec<HogMap>, VisionError> {
+    let every = params.computed_every.max(1) as usize;
+    if every == 1 {
+        return Ok(all);
+    }
+    let sizes = level_sizes(w, h, params);
+    let computed = all.into_iter().step_by(every).collect();
+    Ok(fill_between(&sizes, computed, every, deadline)?
+        .into_iter()
+        .map(|(_, _, m)| m)
+        .collect())
+}
+
+/// The cells of a `lw x lh` level from those of a larger level (`ratio`
+/// times its size): each cell the area-weighted mean of the larger
+/// level's cells its 8x8 pixels cover there (a linear map of the cells,
+/// so learned cells resample as their backbone's features would before
+/// the affine projection).
+pub fn resample_cells(
+    src: &HogMap,
+    lw: usize,
+    lh: usize,
+    ratio: f64,
+) -> Result<HogMap, VisionError> {
+    let (cw, ch) = (lw / CELL_SIZE, lh / CELL_SIZE);
+    if cw == 0 || ch == 0 || src.width() == 0 || src.height() == 0 {
+        return HogMap::from_raw(cw, ch, vec![0.0; cw * ch * HOG_STRIDE]);
+    }
+    let xs = cell_taps(src.width(), cw, ratio);
+    let ys = cell_taps(src.height(), ch, ratio);
+    let raw = src.raw();
+    let row = src.width() * HOG_STRIDE;
+    let mut data = vec![0.0f32; cw * ch * HOG_STRIDE];
+    let mut line = vec![0.0f32; row];
+    for (y, ty) in ys.iter().enumerate() {
+        // The source rows blended, then the columns.
+        line.fill(0.0);
+        for &(sy, wy) in ty {
+            for (o, &v) in line.iter_mut().zip(&raw[sy * row..(sy + 1) * row]) {
+                *o += wy * v;
             }
-            // The full-size level reads the image itself.
-            if (lw, lh) == (w, h) {
-                return Ok((lw, lh, params.features.cells_until(img, deadline)?));
+        }
+        let out = &mut data[y * cw * HOG_STRIDE..(y + 1) * cw * HOG_STRIDE];
+        for (cell, tx) in out.chunks_exact_mut(HOG_STRIDE).zip(&xs) {
+            for &(sx, wx) in tx {
+                for (o, &v) in cell
+                    .iter_mut()
+                    .zip(&line[sx * HOG_STRIDE..(sx + 1) * HOG_STRIDE])
+                {
+                    *o += wx * v;
+                }
             }
-            // HOG levels as ever; learned cells see upsampled levels
-            // interpolated, not in blocks.
-            let resized = params.features.resize_until(img, lw, lh, deadline)?;
-            if deadline.passed() {
-                return Err(VisionError::DeadlineExceeded);
-            }
-            Ok((lw, lh, params.features.cells_until(&resized, deadline)?))
+        }
+    }
+    HogMap::from_raw(cw, ch, data)
+}
+
+/// For each of `dst` cells along an axis, the source cells (of `src`) its
+/// span covers, `ratio` source cells per cell, with their shares: cell
+/// `o` covers `o * ratio..(o + 1) * ratio`, clamped to the source.
+fn cell_taps(src: usize, dst: usize, ratio: f64) -> Vec<Vec<(usize, f32)>> {
+    (0..dst)
+        .map(|o| {
+            let a = (o as f64 * ratio).min((src - 1) as f64);
+            let b = ((o as f64 + 1.0) * ratio).min(src as f64).max(a + 1e-9);
+            let (first, last) = (a.floor() as usize, (b.ceil() as usize).min(src));
+            let taps: Vec<(usize, f64)> = (first..last)
+                .map(|i| (i, b.min(i as f64 + 1.0) - a.max(i as f64)))
+                .filter(|&(_, w)| w > 0.0)
+                .collect();
+            let total: f64 = taps.iter().map(|t| t.1).sum();
+            taps.into_iter()
+                .map(|(i, w)| (i, (w / total) as f32))
+                .collect()
         })
         .collect()
 }
@@ -348,6 +524,69 @@ mod tests {
                 .unwrap()
                 .labels()
         );
+    }
+
+    #[test]
+    fn every_nth_level_is_computed_and_the_rest_resampled_from_above() {
+        let img = crate::vision::image::noise_image(200, 150, 7);
+        let exact = PyramidParams::default();
+        let fast = PyramidParams {
+            computed_every: 5,
+            ..exact
+        };
+        let all = feature_levels(&img, &exact, Deadline::NONE).unwrap();
+        let some = feature_levels(&img, &fast, Deadline::NONE).unwrap();
+        assert_eq!(all.len(), 11);
+        assert_eq!(some.len(), all.len());
+        for (l, (a, b)) in all.iter().zip(&some).enumerate() {
+            assert_eq!((a.0, a.1), (b.0, b.1));
+            assert_eq!((a.2.width(), a.2.height()), (b.2.width(), b.2.height()));
+            if l % 5 == 0 {
+                assert_eq!(a.2, b.2, "level {l} is computed");
+            } else {
+                let sw = all[l - l % 5].0;
+                let want = resample_cells(&all[l - l % 5].2, a.0, a.1, sw as f64 / a.0 as f64);
+                assert_eq!(b.2, want.unwrap(), "level {l}");
+            }
+        }
+        // A backend that computed every level gets the same cells.
+        let maps = all.into_iter().map(|(_, _, m)| m).collect();
+        let same = approximate_levels((200, 150), &fast, maps, Deadline::NONE).unwrap();
+        assert!(same.iter().zip(&some).all(|(a, b)| *a == b.2));
+        assert!(PyramidParams {
+            computed_every: 0,
+            ..exact
+        }
+        .validate()
+        .is_err());
+    }
+
+    #[test]
+    fn resampled_cells_keep_a_uniform_map_and_at_ratio_one_copy_it() {
+        let (w, h) = (9, 7);
+        let data: Vec<f32> = (0..w * h * HOG_STRIDE).map(|i| (i % 97) as f32).collect();
+        let map = HogMap::from_raw(w, h, data).unwrap();
+        assert_eq!(
+            resample_cells(&map, w * CELL_SIZE, h * CELL_SIZE, 1.0).unwrap(),
+            map
+        );
+        let mut flat = vec![0.0; w * h * HOG_STRIDE];
+        for cell in flat.chunks_exact_mut(HOG_STRIDE) {
+            for (k, v) in cell.iter_mut().enumerate() {
+                *v = k as f32 * 0.5 - 3.0;
+            }
+        }
+        let flat = HogMap::from_raw(w, h, flat).unwrap();
+        // 72 x 56 pixels down to 50 x 40: 6 x 5 cells, each the same.
+        let small = resample_cells(&flat, 50, 40, 72.0 / 50.0).unwrap();
+        assert_eq!((small.width(), small.height()), (6, 5));
+        for y in 0..5 {
+            for x in 0..6 {
+                for (a, b) in small.cell(x, y).iter().zip(flat.cell(0, 0)) {
+                    assert!((a - b).abs() < 1e-5);
+                }
+            }
+        }
     }
 
     #[test]

@@ -34,7 +34,9 @@ use crate::vision::detect::{chain_pair_weight, scan_range, DenseBounds, LevelBou
 use crate::vision::energy::ViewWeights;
 use crate::vision::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
 use crate::vision::image::ColorImage;
-use crate::vision::pyramid::{feature_levels, FeaturePyramid, Level, PyramidParams, PyramidTiming};
+use crate::vision::pyramid::{
+    approximate_levels, feature_levels, FeaturePyramid, Level, PyramidParams, PyramidTiming,
+};
 use crate::vision::segment::{segment_until, SegmentParams, Segmentation};
 use crate::vision::{Deadline, VisionError};
 use features::level_sizes;
@@ -783,7 +785,16 @@ impl Backend for GpuBackend {
             return self.cpu.pyramids(batch);
         };
         let learned: Vec<Result<(Vec<HogMap>, f64), VisionError>> = match cells {
-            Some(maps) => maps.into_iter().map(|m| m.map(|m| (m, cells_ms))).collect(),
+            // Every level from the device; those the settings resample
+            // replaced as the CPU makes them.
+            Some(maps) => maps
+                .into_iter()
+                .zip(&learned)
+                .map(|(m, (img, p, deadline))| {
+                    let m = approximate_levels((img.width(), img.height()), p, m?, *deadline)?;
+                    Ok((m, cells_ms))
+                })
+                .collect(),
             // On the CPU, level by level within each deadline.
             None => learned
                 .par_iter()

@@ -11,6 +11,7 @@ use crate::train::photo_augment::PhotoAugment;
 use crate::train::TrainParams;
 use crate::vision::cells::FeatureKind;
 use crate::vision::energy::PairwiseMode;
+use crate::vision::pyramid::LEARNED_COMPUTED_EVERY;
 use std::path::PathBuf;
 
 /// Images of each other CMU_KO8 object used as negatives (`--other-negatives`).
@@ -51,6 +52,13 @@ pub struct TrainSettings {
     /// Pyramid levels per octave.
     #[arg(long)]
     pub levels_per_octave: Option<u32>,
+    /// Every how many pyramid levels the cells are computed from pixels,
+    /// the levels between resampled from the computed level above
+    /// (Dollár's fast feature pyramids; 1: every level, exact). Default:
+    /// 1 for HOG, 5 for learned cells (the backbone on two levels per
+    /// octave).
+    #[arg(long)]
+    pub computed_every: Option<u32>,
     /// Smallest pyramid scale.
     #[arg(long)]
     pub min_scale: Option<f32>,
@@ -198,6 +206,7 @@ impl TrainSettings {
     /// The settings: the `--config` file's, then the flags'. `features` is
     /// the route's feature kind, taken where neither names one.
     pub fn params(&self, features: FeatureKind) -> Result<(TrainParams, NegativeSet), RouteError> {
+        let mut config_names_every = false;
         let mut p = match &self.config {
             Some(path) => {
                 let text = std::fs::read_to_string(path)
@@ -205,6 +214,7 @@ impl TrainSettings {
                 let json: serde_json::Value = serde_json::from_str(&text)
                     .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
                 let named = json.pointer("/pyramid/features").is_some();
+                config_names_every = json.pointer("/pyramid/computed_every").is_some();
                 let mut p: TrainParams = serde_json::from_value(json)
                     .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
                 if !named {
@@ -226,6 +236,13 @@ impl TrainSettings {
         }
         set(&mut p.pyramid.features, self.features);
         set(&mut p.pyramid.levels_per_octave, self.levels_per_octave);
+        // Learned cells compute the backbone on every fifth level unless a
+        // flag or the config file says otherwise (issue 63).
+        let named_every = self.computed_every.is_some() || config_names_every;
+        if p.pyramid.features == FeatureKind::Cnn && !named_every {
+            p.pyramid.computed_every = LEARNED_COMPUTED_EVERY;
+        }
+        set(&mut p.pyramid.computed_every, self.computed_every);
         set(&mut p.pyramid.min_scale, self.min_scale);
         set(&mut p.pyramid.max_scale, self.max_scale);
         set(&mut p.segmentation.k, self.seg_k);
@@ -285,6 +302,7 @@ impl Default for TrainSettings {
             template: None,
             features: None,
             levels_per_octave: None,
+            computed_every: None,
             min_scale: None,
             max_scale: None,
             seg_k: None,
@@ -322,5 +340,31 @@ impl TrainSettings {
             || self.levels_per_octave.is_some()
             || self.min_scale.is_some()
             || self.max_scale.is_some()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn learned_cells_compute_every_fifth_level_unless_told() {
+        let none = TrainSettings::default();
+        let (hog, _) = none.params(FeatureKind::Hog).unwrap();
+        assert_eq!(hog.pyramid.computed_every, 1);
+        let (cnn, _) = none.params(FeatureKind::Cnn).unwrap();
+        assert_eq!(cnn.pyramid.computed_every, LEARNED_COMPUTED_EVERY);
+        let flag = TrainSettings {
+            features: Some(FeatureKind::Cnn),
+            ..TrainSettings::default()
+        };
+        let (cnn, _) = flag.params(FeatureKind::Hog).unwrap();
+        assert_eq!(cnn.pyramid.computed_every, LEARNED_COMPUTED_EVERY);
+        let exact = TrainSettings {
+            computed_every: Some(1),
+            ..TrainSettings::default()
+        };
+        let (cnn, _) = exact.params(FeatureKind::Cnn).unwrap();
+        assert_eq!(cnn.pyramid.computed_every, 1);
     }
 }
