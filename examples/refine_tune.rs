@@ -6,7 +6,8 @@
 //! learned from the fold's training images, as training does.
 //!
 //! `cargo run --release --example refine_tune -- KO8_ROOT MODELS_DIR FOLD FOLDS [off|S,C,G,B,P ...]`
-//! (MODELS_DIR/fold-FOLD/<object>.safetensors, as `cv --save-models`).
+//! (MODELS_DIR/fold-FOLD/<object>.safetensors, as `cv --save-models`;
+//! `OBJECTS=cup,...` for a cross-validation of some objects).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -51,7 +52,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if configs.is_empty() {
         configs.push("1,1,1,0,1".into());
     }
-    let data = Ko8Data::load(&root, &[])?;
+    // OBJECTS=cup,pitcher: those objects alone (a cross-validation of some).
+    let objects: Vec<String> = std::env::var("OBJECTS")
+        .map(|v| v.split(',').map(str::to_string).collect())
+        .unwrap_or_default();
+    let data = Ko8Data::load(&root, &objects)?;
     let neg = NegativeSet::default();
     let snap = RefineParams::default();
     // Per object: raw, snapped, then each config.

@@ -18,6 +18,7 @@
 use std::collections::HashMap;
 use std::path::Path;
 
+use rayon::prelude::*;
 use safetensors::tensor::{Dtype, SafeTensors};
 use serde::Deserialize;
 use thiserror::Error;
@@ -349,100 +350,132 @@ struct Scratch {
 }
 
 impl Block {
-    /// The block over the whole map, [`BAND_ROWS`] output rows at a time:
-    /// the expansion of just the input rows a band reads, its depthwise
-    /// convolution and its projection.
-    fn apply(
-        &self,
-        x: &FeatureMap,
-        scratch: &mut Scratch,
-        deadline: Deadline,
-    ) -> Result<FeatureMap, VisionError> {
+    /// The block over the whole map, [`BAND_ROWS`] output rows at a time
+    /// ([`banded`]: the bands on every compute thread): the expansion of
+    /// just the input rows a band reads, its depthwise convolution and its
+    /// projection.
+    fn apply(&self, x: &FeatureMap, deadline: Deadline) -> Result<FeatureMap, VisionError> {
         let dw = &self.depthwise;
         let (k, s) = (dw.k, dw.stride);
         let (ow, _) = same_padding(x.width, k, s);
         let (oh, top) = same_padding(x.height, k, s);
         let plane_out = ow * oh;
-        let mut out = FeatureMap::zeros(self.project.out, ow, oh);
         let mid = dw.channels;
-        for oy0 in (0..oh).step_by(BAND_ROWS) {
-            if deadline.passed() {
-                return Err(VisionError::DeadlineExceeded);
-            }
-            let oy1 = (oy0 + BAND_ROWS).min(oh);
-            // The input rows the band reads.
-            let y0 = (oy0 * s).saturating_sub(top);
-            let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
-            let rows = y1 - y0;
-            let src = match &self.expand {
-                Some(e) => {
-                    let n = rows * x.width;
-                    scratch.expanded.resize(mid * n, 0.0);
-                    // expanded (mid x n) = weight (mid x inp) * x's rows
-                    // (inp x n, channel stride plane).
-                    gemm_strided(
-                        mid,
-                        e.inp,
-                        n,
-                        &e.weight,
-                        &x.data[y0 * x.width..],
-                        x.width * x.height,
-                        &mut scratch.expanded,
-                        n,
-                    );
-                    for (plane, &b) in scratch.expanded.chunks_exact_mut(n).zip(&e.bias) {
-                        for v in plane {
-                            *v = relu6(*v + b);
+        banded(
+            self.project.out,
+            ow,
+            oh,
+            deadline,
+            |scratch, oy0, oy1, dst| {
+                let Scratch {
+                    expanded,
+                    depthwise,
+                    phases,
+                } = scratch;
+                // The input rows the band reads.
+                let y0 = (oy0 * s).saturating_sub(top);
+                let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
+                let rows = y1 - y0;
+                let src = match &self.expand {
+                    Some(e) => {
+                        let n = rows * x.width;
+                        expanded.resize(mid * n, 0.0);
+                        // expanded (mid x n) = weight (mid x inp) * x's rows
+                        // (inp x n, channel stride plane).
+                        gemm_strided(
+                            mid,
+                            e.inp,
+                            n,
+                            &e.weight,
+                            &x.data[y0 * x.width..],
+                            x.width * x.height,
+                            expanded,
+                            n,
+                        );
+                        for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
+                            for v in plane {
+                                *v = relu6(*v + b);
+                            }
+                        }
+                        Rows {
+                            data: expanded,
+                            plane: n,
+                            width: x.width,
+                            y0,
+                            rows,
+                            height: x.height,
                         }
                     }
-                    Rows {
-                        data: &scratch.expanded,
-                        plane: n,
+                    None => Rows {
+                        data: &x.data[y0 * x.width..],
+                        plane: x.width * x.height,
                         width: x.width,
                         y0,
                         rows,
                         height: x.height,
+                    },
+                };
+                let band = (oy1 - oy0) * ow;
+                depthwise.resize(mid * band, 0.0);
+                dw.apply_rows(&src, oy0, oy1, depthwise, phases);
+                // The band's rows of the output.
+                let p = &self.project;
+                gemm_into(p.out, p.inp, band, &p.weight, depthwise, dst, band);
+                for (c, o) in dst.chunks_exact_mut(band).enumerate() {
+                    if self.skip {
+                        let i = &x.data[c * plane_out + oy0 * ow..][..band];
+                        for (o, &i) in o.iter_mut().zip(i) {
+                            *o += p.bias[c] + i;
+                        }
+                    } else {
+                        for o in o.iter_mut() {
+                            *o += p.bias[c];
+                        }
                     }
                 }
-                None => Rows {
-                    data: &x.data[y0 * x.width..],
-                    plane: x.width * x.height,
-                    width: x.width,
-                    y0,
-                    rows,
-                    height: x.height,
-                },
-            };
-            let band = (oy1 - oy0) * ow;
-            scratch.depthwise.resize(mid * band, 0.0);
-            dw.apply_rows(&src, oy0, oy1, &mut scratch.depthwise, &mut scratch.phases);
-            // The band's rows of the output (channel stride plane_out).
-            let p = &self.project;
-            gemm_into(
-                p.out,
-                p.inp,
-                band,
-                &p.weight,
-                &scratch.depthwise,
-                &mut out.data[oy0 * ow..],
-                plane_out,
-            );
-            for c in 0..p.out {
-                let o = &mut out.data[c * plane_out + oy0 * ow..][..band];
-                if self.skip {
-                    let i = &x.data[c * plane_out + oy0 * ow..][..band];
-                    for (o, &i) in o.iter_mut().zip(i) {
-                        *o += p.bias[c] + i;
-                    }
-                } else {
-                    for o in o.iter_mut() {
-                        *o += p.bias[c];
-                    }
-                }
-            }
-        }
-        Ok(out)
+            },
+        )
     }
+}
+
+/// A layer's `channels x oh x ow` output computed [`BAND_ROWS`] rows at a
+/// time, the bands on every compute thread (each with its own
+/// [`Scratch`]): `band(scratch, oy0, oy1, dst)` fills `dst` with rows
+/// `oy0..oy1` of every channel (`channels x (oy1 - oy0) x ow`,
+/// contiguous). Gives up once `deadline` has passed, looked at before
+/// every band.
+fn banded<F>(
+    channels: usize,
+    ow: usize,
+    oh: usize,
+    deadline: Deadline,
+    band: F,
+) -> Result<FeatureMap, VisionError>
+where
+    F: Fn(&mut Scratch, usize, usize, &mut [f32]) + Sync,
+{
+    let starts: Vec<usize> = (0..oh).step_by(BAND_ROWS).collect();
+    let bands = starts
+        .par_iter()
+        .map_init(Scratch::default, |scratch, &oy0| {
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
+            let oy1 = (oy0 + BAND_ROWS).min(oh);
+            let mut dst = vec![0.0f32; channels * (oy1 - oy0) * ow];
+            band(scratch, oy0, oy1, &mut dst);
+            Ok(dst)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut out = FeatureMap::zeros(channels, ow, oh);
+    let plane = ow * oh;
+    for (&oy0, dst) in starts.iter().zip(&bands) {
+        let n = dst.len() / channels.max(1);
+        for (c, rows) in dst.chunks_exact(n.max(1)).enumerate() {
+            out.data[c * plane + oy0 * ow..][..n].copy_from_slice(rows);
+        }
+    }
+    Ok(out)
 }
 
 /// `c = a (m x k, row-major) * b`, where `b`'s row `r` starts at `b[r *
@@ -617,24 +650,13 @@ impl Backbone {
     /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
     /// 27 rows, [`BAND_ROWS`] output rows at a time) times the stem's
     /// weights, then ReLU6.
-    fn stem(
-        &self,
-        img: &ColorImage,
-        scratch: &mut Scratch,
-        deadline: Deadline,
-    ) -> Result<FeatureMap, VisionError> {
+    fn stem(&self, img: &ColorImage, deadline: Deadline) -> Result<FeatureMap, VisionError> {
         let (w, h) = (img.width(), img.height());
         let (ow, left) = same_padding(w, 3, 2);
         let (oh, top) = same_padding(h, 3, 2);
-        let plane = ow * oh;
         let out_c = self.stem_bias.len();
-        let mut out = FeatureMap::zeros(out_c, ow, oh);
         let pixels = img.data();
-        for oy0 in (0..oh).step_by(BAND_ROWS) {
-            if deadline.passed() {
-                return Err(VisionError::DeadlineExceeded);
-            }
-            let oy1 = (oy0 + BAND_ROWS).min(oh);
+        banded(out_c, ow, oh, deadline, |scratch, oy0, oy1, dst| {
             let n = (oy1 - oy0) * ow;
             let patches = &mut scratch.expanded;
             patches.clear();
@@ -668,22 +690,13 @@ impl Backbone {
                     }
                 }
             }
-            gemm_into(
-                out_c,
-                27,
-                n,
-                &self.stem,
-                patches,
-                &mut out.data[oy0 * ow..],
-                plane,
-            );
-            for (c, &b) in self.stem_bias.iter().enumerate() {
-                for v in &mut out.data[c * plane + oy0 * ow..][..n] {
+            gemm_into(out_c, 27, n, &self.stem, patches, dst, n);
+            for (plane, &b) in dst.chunks_exact_mut(n).zip(&self.stem_bias) {
+                for v in plane {
                     *v = relu6(*v + b);
                 }
             }
-        }
-        Ok(out)
+        })
     }
 
     /// The stem's weights (`out x 3 x 3 x 3`), biases, and the input
@@ -739,10 +752,9 @@ impl Backbone {
         img: &ColorImage,
         deadline: Deadline,
     ) -> Result<FeatureMap, VisionError> {
-        let mut scratch = Scratch::default();
-        let mut x = self.stem(img, &mut scratch, deadline)?;
+        let mut x = self.stem(img, deadline)?;
         for b in &self.blocks {
-            x = b.apply(&x, &mut scratch, deadline)?;
+            x = b.apply(&x, deadline)?;
         }
         Ok(x)
     }
