@@ -1,69 +1,64 @@
 //! Exact pruning's bounds (stage 1 of [`super`]): one dense pass per level
 //! and viewpoint computes every location's row-and-column chain bound of
 //! the unary and pairwise energy, plus the smallest clique potential times
-//! an upper bound on the number of cliques in the box ([`CliqueCounter`],
-//! O(1) per box). `dense_bounds` and `responses` are the CPU references of
+//! the number of cliques in the box ([`segment_counts_row`]). `dense_bounds` and `responses` are the CPU references of
 //! `kernels/dense_bounds.wgsl` and `kernels/responses.wgsl`.
 
 use super::low_rank::{LowRankBasis, LowRankFilter, LOW_RANK_DIMS};
 use super::*;
 
-/// Upper bounds on the number of cliques (distinct segments) among the
-/// cells of any box of a level, in O(1) per box. A box's cells of one
-/// segment form one or more 4-connected pieces, and the first cell of each
-/// piece in raster order has neither its left nor its upper neighbour in the
-/// piece: that neighbour is outside the box or in another segment. Counting
-/// such cells with prefix sums bounds the number of pieces, hence of
-/// cliques.
-pub(super) struct CliqueCounter {
-    w: usize,
-    h: usize,
-    /// Per row, prefix sums of "the left neighbour is another segment".
-    left: Vec<u32>,
-    /// Per column, prefix sums of "the upper neighbour is another segment".
-    up: Vec<u32>,
-    /// 2D prefix sums of "both neighbours are other segments".
-    both: Vec<u32>,
-}
-
-impl CliqueCounter {
-    pub(super) fn new(seg: &[u32], w: usize, h: usize) -> Self {
-        let l = |x: usize, y: usize| u32::from(x > 0 && seg[y * w + x - 1] != seg[y * w + x]);
-        let u = |x: usize, y: usize| u32::from(y > 0 && seg[(y - 1) * w + x] != seg[y * w + x]);
-        let mut left = vec![0u32; (w + 1) * h];
-        let mut up = vec![0u32; (h + 1) * w];
-        let mut both = vec![0u32; (w + 1) * (h + 1)];
-        for y in 0..h {
-            for x in 0..w {
-                left[y * (w + 1) + x + 1] = left[y * (w + 1) + x] + l(x, y);
-                up[x * (h + 1) + y + 1] = up[x * (h + 1) + y] + u(x, y);
-                both[(y + 1) * (w + 1) + x + 1] =
-                    both[(y + 1) * (w + 1) + x] + both[y * (w + 1) + x + 1] - both[y * (w + 1) + x]
-                        + l(x, y) * u(x, y);
+/// The number of cliques (distinct segments among the cells inside the
+/// image) of every box of `rows x cols` cells whose top-left cell is `(x,
+/// y)`, `x` in `x_lo..=x_hi`, into `out`: exactly the CRF's clique count,
+/// by a window sliding along the row, `hist` counting each segment's
+/// cells in it (all zero on entry and on return, one entry per segment).
+/// About `2 rows` steps a box. An upper bound on the count served before
+/// (pieces of segments, O(1) a box); with positive clique potentials a
+/// bound needs the count itself, which learned cells' models have (issue
+/// 63: 8,000 locations a photograph passed stage 1 against 300).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn segment_counts_row(
+    seg: &[u32],
+    (mw, mh): (usize, usize),
+    (rows, cols): (usize, usize),
+    y: isize,
+    (x_lo, x_hi): (isize, isize),
+    hist: &mut [u32],
+    out: &mut Vec<u32>,
+) {
+    out.clear();
+    let y0 = y.max(0) as usize;
+    let y1 = ((y + rows as isize).max(0) as usize).min(mh);
+    let mut distinct = 0u32;
+    let mut column = |x: isize, add: bool, distinct: &mut u32| {
+        if x < 0 || x as usize >= mw {
+            return;
+        }
+        for yy in y0..y1 {
+            let h = &mut hist[seg[yy * mw + x as usize] as usize];
+            if add {
+                *distinct += u32::from(*h == 0);
+                *h += 1;
+            } else {
+                *h -= 1;
+                *distinct -= u32::from(*h == 0);
             }
         }
-        Self {
-            w,
-            h,
-            left,
-            up,
-            both,
-        }
+    };
+    for x in x_lo..x_lo + cols as isize {
+        column(x, true, &mut distinct);
     }
-
-    /// Bound for the cells `[x0, x1) x [y0, y1)` (non-empty, inside the map).
-    pub(super) fn bound(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> usize {
-        debug_assert!(x0 < x1 && x1 <= self.w && y0 < y1 && y1 <= self.h);
-        let (w1, h1) = (self.w + 1, self.h + 1);
-        let row = self.left[y0 * w1 + x1] - self.left[y0 * w1 + x0 + 1];
-        let col = self.up[x0 * h1 + y1] - self.up[x0 * h1 + y0 + 1];
-        let b = &self.both;
-        let inner = b[y1 * w1 + x1] + b[(y0 + 1) * w1 + x0 + 1]
-            - b[(y0 + 1) * w1 + x1]
-            - b[y1 * w1 + x0 + 1];
-        1 + (row + col + inner) as usize
+    out.push(distinct);
+    for x in x_lo + 1..=x_hi {
+        column(x - 1, false, &mut distinct);
+        column(x + cols as isize - 1, true, &mut distinct);
+        out.push(distinct);
+    }
+    for x in x_hi..x_hi + cols as isize {
+        column(x, false, &mut distinct);
     }
 }
+
 /// Dot product of two equal-length slices with eight accumulators (the
 /// compiler vectorises it; see [`dot`] for the dispatch).
 #[inline(always)]
@@ -663,7 +658,6 @@ impl Detector<'_> {
         level_idx: usize,
         level: &Level,
         map: &PlanarMap,
-        cliques: Option<&CliqueCounter>,
         vi: usize,
         params: &DetectParams,
         cut: f64,
@@ -733,9 +727,25 @@ impl Detector<'_> {
         } else {
             map
         };
+        let segments = level
+            .cell_segments
+            .iter()
+            .max()
+            .map_or(0, |&m| m as usize + 1);
+        let mut hist = vec![0u32; if params.prune { segments } else { 0 }];
+        let mut counts = Vec::with_capacity(nx);
         for y in y_lo..=y_hi {
             let oy = overlap(y, rows, mh);
             if params.prune {
+                segment_counts_row(
+                    &level.cell_segments,
+                    (mw, mh),
+                    (rows, cols),
+                    y,
+                    (x_lo, x_hi),
+                    &mut hist,
+                    &mut counts,
+                );
                 if let Some(b) = pre {
                     // Positions narrowed to `centres` lie inside the full
                     // range `b` covers.
@@ -754,17 +764,8 @@ impl Detector<'_> {
                 }
                 count += 1;
                 let truncated = (n - inside) as f64;
-                let hop = if view.hop_min >= 0.0 {
-                    view.hop_min
-                } else {
-                    let most = cliques.map_or(inside, |c| {
-                        let (x0, y0) = (x.max(0) as usize, y.max(0) as usize);
-                        let x1 = ((x + cols as isize) as usize).min(mw);
-                        let y1 = ((y + rows as isize) as usize).min(mh);
-                        c.bound(x0, x1, y0, y1).min(inside)
-                    });
-                    view.hop_min * most as f64
-                };
+                // Every clique costs at least the smallest potential.
+                let hop = view.hop_min * f64::from(counts.get(k).copied().unwrap_or(1));
                 let base =
                     hop + f64::from(view.w.w_trunc) * truncated + f64::from(view.w.bias) - max_loss;
                 let bound = if params.prune {
