@@ -508,6 +508,7 @@ fn model_meta(
         detection: DetectParams {
             threshold: params.threshold,
             max_truncation: params.max_truncation,
+            refine: crate::vision::refine::RefineParams::for_cells(params.pyramid.features),
             ..DetectParams::default()
         },
         viewpoints: shapes
