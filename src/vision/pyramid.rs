@@ -27,16 +27,11 @@ pub struct PyramidParams {
     /// Every how many levels the cells are computed from pixels: the
     /// levels between are resampled (area-weighted) from the cells of the
     /// computed level above them, Dollár's fast feature pyramids. 1
-    /// computes every level (exact), which files without the field mean;
-    /// learned cells train at [`LEARNED_COMPUTED_EVERY`] by default.
+    /// computes every level (exact), the default and what files without
+    /// the field mean.
     #[serde(default = "every_level", skip_serializing_if = "is_every_level")]
     pub computed_every: u32,
 }
-
-/// Learned cells' default [`PyramidParams::computed_every`] (issue 63):
-/// the backbone runs on every fifth level, two per octave at ten levels
-/// per octave.
-pub const LEARNED_COMPUTED_EVERY: u32 = 5;
 
 fn every_level() -> u32 {
     1

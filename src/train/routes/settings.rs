@@ -11,7 +11,6 @@ use crate::train::photo_augment::PhotoAugment;
 use crate::train::TrainParams;
 use crate::vision::cells::FeatureKind;
 use crate::vision::energy::PairwiseMode;
-use crate::vision::pyramid::LEARNED_COMPUTED_EVERY;
 use std::path::PathBuf;
 
 /// Images of each other CMU_KO8 object used as negatives (`--other-negatives`).
@@ -54,9 +53,9 @@ pub struct TrainSettings {
     pub levels_per_octave: Option<u32>,
     /// Every how many pyramid levels the cells are computed from pixels,
     /// the levels between resampled from the computed level above
-    /// (Dollár's fast feature pyramids; 1: every level, exact). Default:
-    /// 1 for HOG, 5 for learned cells (the backbone on two levels per
-    /// octave).
+    /// (Dollár's fast feature pyramids). Default 1: every level, exact.
+    /// Learned cells at 5 scan 2.8x faster but lost 0.08 AUC on the
+    /// scissors' folds (docs/training.md, "Learned cells").
     #[arg(long)]
     pub computed_every: Option<u32>,
     /// Smallest pyramid scale.
@@ -206,7 +205,6 @@ impl TrainSettings {
     /// The settings: the `--config` file's, then the flags'. `features` is
     /// the route's feature kind, taken where neither names one.
     pub fn params(&self, features: FeatureKind) -> Result<(TrainParams, NegativeSet), RouteError> {
-        let mut config_names_every = false;
         let mut p = match &self.config {
             Some(path) => {
                 let text = std::fs::read_to_string(path)
@@ -214,7 +212,6 @@ impl TrainSettings {
                 let json: serde_json::Value = serde_json::from_str(&text)
                     .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
                 let named = json.pointer("/pyramid/features").is_some();
-                config_names_every = json.pointer("/pyramid/computed_every").is_some();
                 let mut p: TrainParams = serde_json::from_value(json)
                     .map_err(|e| RouteError::input(format!("{}: {e}", path.display())))?;
                 if !named {
@@ -236,12 +233,6 @@ impl TrainSettings {
         }
         set(&mut p.pyramid.features, self.features);
         set(&mut p.pyramid.levels_per_octave, self.levels_per_octave);
-        // Learned cells compute the backbone on every fifth level unless a
-        // flag or the config file says otherwise (issue 63).
-        let named_every = self.computed_every.is_some() || config_names_every;
-        if p.pyramid.features == FeatureKind::Cnn && !named_every {
-            p.pyramid.computed_every = LEARNED_COMPUTED_EVERY;
-        }
         set(&mut p.pyramid.computed_every, self.computed_every);
         set(&mut p.pyramid.min_scale, self.min_scale);
         set(&mut p.pyramid.max_scale, self.max_scale);
@@ -348,23 +339,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn learned_cells_compute_every_fifth_level_unless_told() {
+    fn the_pyramid_computes_every_level_unless_told() {
         let none = TrainSettings::default();
-        let (hog, _) = none.params(FeatureKind::Hog).unwrap();
-        assert_eq!(hog.pyramid.computed_every, 1);
-        let (cnn, _) = none.params(FeatureKind::Cnn).unwrap();
-        assert_eq!(cnn.pyramid.computed_every, LEARNED_COMPUTED_EVERY);
-        let flag = TrainSettings {
-            features: Some(FeatureKind::Cnn),
+        for kind in [FeatureKind::Hog, FeatureKind::Cnn] {
+            let (p, _) = none.params(kind).unwrap();
+            assert_eq!(p.pyramid.computed_every, 1);
+        }
+        let fast = TrainSettings {
+            computed_every: Some(5),
             ..TrainSettings::default()
         };
-        let (cnn, _) = flag.params(FeatureKind::Hog).unwrap();
-        assert_eq!(cnn.pyramid.computed_every, LEARNED_COMPUTED_EVERY);
-        let exact = TrainSettings {
-            computed_every: Some(1),
-            ..TrainSettings::default()
-        };
-        let (cnn, _) = exact.params(FeatureKind::Cnn).unwrap();
-        assert_eq!(cnn.pyramid.computed_every, 1);
+        let (cnn, _) = fast.params(FeatureKind::Cnn).unwrap();
+        assert_eq!(cnn.pyramid.computed_every, 5);
     }
 }

@@ -234,41 +234,34 @@ fn low_rank_bounds_stay_below_the_full_ones() {
     }
 }
 
-/// The sliding count is the number of distinct segments among each box's
+/// The clique count is the number of distinct segments among each box's
 /// cells inside the map, at every position a scan reaches (boxes hanging
-/// over every border included).
+/// over every border included), and never above the O(1) bound.
 #[test]
-fn segment_counts_are_the_distinct_segments_of_each_box() {
+fn clique_counts_are_the_distinct_segments_of_each_box() {
     let (mw, mh) = (13usize, 9usize);
     let mut rng = SplitMix64::new(5);
     // Blocky segments, so that boxes hold a few each.
     let seg: Vec<u32> = (0..mw * mh)
         .map(|i| ((i % mw) / 3 + 5 * ((i / mw) / 2)) as u32 + (rng.next_u64() % 2) as u32 * 40)
         .collect();
-    let segments = *seg.iter().max().unwrap() as usize + 1;
-    let mut hist = vec![0u32; segments];
-    let mut out = Vec::new();
+    let upper = CliqueCounter::new(&seg, mw, mh);
+    let mut exact = CliqueCount::default();
     for (rows, cols) in [(1, 1), (3, 4), (5, 2), (9, 13), (11, 15)] {
         for y in -(rows as isize) + 1..mh as isize {
-            let (x_lo, x_hi) = (-(cols as isize) + 1, mw as isize - 1);
-            segment_counts_row(
-                &seg,
-                (mw, mh),
-                (rows, cols),
-                y,
-                (x_lo, x_hi),
-                &mut hist,
-                &mut out,
-            );
-            assert!(hist.iter().all(|&h| h == 0));
-            for (k, x) in (x_lo..=x_hi).enumerate() {
+            for x in -(cols as isize) + 1..mw as isize {
                 let mut seen = std::collections::HashSet::new();
-                for yy in y.max(0)..(y + rows as isize).min(mh as isize) {
-                    for xx in x.max(0)..(x + cols as isize).min(mw as isize) {
+                let (x0, x1) = (x.max(0), (x + cols as isize).min(mw as isize));
+                let (y0, y1) = (y.max(0), (y + rows as isize).min(mh as isize));
+                for yy in y0..y1 {
+                    for xx in x0..x1 {
                         seen.insert(seg[yy as usize * mw + xx as usize]);
                     }
                 }
-                assert_eq!(out[k] as usize, seen.len(), "{rows}x{cols} at ({x}, {y})");
+                let n = exact.count(&seg, (mw, mh), (rows, cols), (x, y));
+                assert_eq!(n as usize, seen.len(), "{rows}x{cols} at ({x}, {y})");
+                let b = upper.bound(x0 as usize, x1 as usize, y0 as usize, y1 as usize);
+                assert!(n as usize <= b);
             }
         }
     }

@@ -7,8 +7,10 @@
 //! far, since locations are visited in order of their bound):
 //! 1. one dense pass per level and viewpoint computes every location's sum
 //!    of best unaries `sum_i min(F_i, B_i + R_i)`, plus the smallest clique
-//!    potential times the number of cliques in the box (a window sliding
-//!    along each row of positions, `segment_counts_row`);
+//!    potential times the number of cliques in the box (first one, or an
+//!    upper bound on it, `CliqueCounter`, O(1) per box, where the smallest
+//!    potential is negative; then, where the location passes, the count
+//!    itself, `CliqueCount`);
 //! 2. at the survivors, the exact minimum of the energy without its pairwise
 //!    term (cliques are then independent; [`BoxProblem::lower_bound_without_pairwise`]);
 //! 3. the min-cut itself stops as soon as the flow it has found shows the
@@ -48,7 +50,7 @@ pub use bounds::{
     chain_pair_weight, dense_bounds, dot, responses, scan_range, DenseBounds, LevelBounds,
     PlanarMaps,
 };
-use bounds::{overlap, positions, PlanarMap};
+use bounds::{overlap, positions, CliqueCounter, PlanarMap};
 pub use low_rank::{LowRank, LOW_RANK};
 pub use transfer::Transfer;
 
@@ -535,6 +537,14 @@ impl<'a> Detector<'a> {
         } else {
             &[]
         };
+        let counters: Vec<CliqueCounter> = if params.prune {
+            pyr.levels
+                .par_iter()
+                .map(|l| CliqueCounter::new(&l.cell_segments, l.hog.width(), l.hog.height()))
+                .collect()
+        } else {
+            Vec::new()
+        };
         let low_maps: Vec<PlanarMap> = match self.low_rank {
             Some(lr) if params.prune && pre.is_none() => pyr
                 .levels
@@ -560,6 +570,7 @@ impl<'a> Detector<'a> {
                     l,
                     level,
                     map,
+                    counters.get(l),
                     v,
                     params,
                     cut,
@@ -898,6 +909,41 @@ mod tests {
     fn iou_of_boxes() {
         assert_eq!(box_iou((0.0, 0.0, 2.0, 2.0), (2.0, 0.0, 2.0, 2.0)), 0.0);
         assert!((box_iou((0.0, 0.0, 2.0, 2.0), (1.0, 0.0, 2.0, 2.0)) - 1.0 / 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn clique_counter_bounds_distinct_segments() {
+        let mut rng = crate::vision::rng::SplitMix64::new(5);
+        for t in 0..300 {
+            let (w, h) = (1 + t % 9, 1 + (t / 9) % 7);
+            let labels = 1 + rng.range_usize(0, 6);
+            let seg: Vec<u32> = (0..w * h)
+                .map(|_| rng.range_usize(0, labels) as u32)
+                .collect();
+            let c = CliqueCounter::new(&seg, w, h);
+            for x0 in 0..w {
+                for x1 in x0 + 1..=w {
+                    for y0 in 0..h {
+                        for y1 in y0 + 1..=h {
+                            let mut seen: Vec<u32> = (y0..y1)
+                                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                                .map(|(x, y)| seg[y * w + x])
+                                .collect();
+                            seen.sort_unstable();
+                            seen.dedup();
+                            let b = c.bound(x0, x1, y0, y1);
+                            assert!(b >= seen.len(), "{seg:?} {w}x{h} [{x0},{x1})x[{y0},{y1})");
+                            assert!(b <= (x1 - x0) * (y1 - y0));
+                        }
+                    }
+                }
+            }
+        }
+        // One segment: exactly one clique; a checkerboard: every cell.
+        let c = CliqueCounter::new(&[3; 12], 4, 3);
+        assert_eq!(c.bound(0, 4, 0, 3), 1);
+        let board: Vec<u32> = (0..12).map(|i| ((i % 4 + i / 4) % 2) as u32).collect();
+        assert_eq!(CliqueCounter::new(&board, 4, 3).bound(1, 4, 0, 3), 9);
     }
 
     #[test]
