@@ -40,6 +40,16 @@ fn scaled(img: &ColorImage, scale: f64) -> ColorImage {
 }
 
 fn main() {
+    // One compute thread, as the figure says (the backbone's bands run on
+    // every thread of the pool it is called in).
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool")
+        .install(run);
+}
+
+fn run() {
     let iters = arg("--iters", 5usize);
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("models/backbones/efficientnet_lite0_s8.safetensors");
