@@ -383,11 +383,19 @@ pub fn linear_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
 /// normalised overlap weights (the taps of [`ColorImage::resize_area`],
 /// also uploaded to the GPU backend's `kernels/resize_area.wgsl`).
 pub fn area_weights(src: usize, dst: usize) -> Vec<Vec<(usize, f32)>> {
-    let scale = src as f64 / dst as f64;
+    area_weights_at(src, dst, src as f64 / dst as f64)
+}
+
+/// [`area_weights`] with `scale` source samples per output sample (not
+/// necessarily `src / dst`: a pyramid level's cells resampled from a
+/// larger level's, whose cell counts are floored), each footprint clamped
+/// to the source.
+pub fn area_weights_at(src: usize, dst: usize, scale: f64) -> Vec<Vec<(usize, f32)>> {
+    let last_start = src.saturating_sub(1) as f64;
     (0..dst)
         .map(|o| {
-            let a = o as f64 * scale;
-            let b = (o as f64 + 1.0) * scale;
+            let a = (o as f64 * scale).min(last_start);
+            let b = ((o as f64 + 1.0) * scale).min(src as f64);
             let mut taps = Vec::new();
             let first = a.floor() as usize;
             let last = (b.ceil() as usize).min(src);

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use super::cells::{FeatureKind, LearnedCells, STRIP_PIXELS};
 use super::hog::{HogMap, CELL_SIZE, HOG_STRIDE};
-use super::image::ColorImage;
+use super::image::{area_weights_at, ColorImage};
 use super::segment::{segment_until, SegmentParams, Segmentation};
 use super::{Deadline, VisionError};
 
@@ -416,8 +416,9 @@ pub fn resample_cells(
     if cw == 0 || ch == 0 || src.width() == 0 || src.height() == 0 {
         return HogMap::from_raw(cw, ch, vec![0.0; cw * ch * HOG_STRIDE]);
     }
-    let xs = cell_taps(src.width(), cw, ratio);
-    let ys = cell_taps(src.height(), ch, ratio);
+    // Cell o covers o * ratio..(o + 1) * ratio of the source's cells.
+    let xs = area_weights_at(src.width(), cw, ratio);
+    let ys = area_weights_at(src.height(), ch, ratio);
     let raw = src.raw();
     let row = src.width() * HOG_STRIDE;
     let mut data = vec![0.0f32; cw * ch * HOG_STRIDE];
@@ -443,27 +444,6 @@ pub fn resample_cells(
         }
     }
     HogMap::from_raw(cw, ch, data)
-}
-
-/// For each of `dst` cells along an axis, the source cells (of `src`) its
-/// span covers, `ratio` source cells per cell, with their shares: cell
-/// `o` covers `o * ratio..(o + 1) * ratio`, clamped to the source.
-fn cell_taps(src: usize, dst: usize, ratio: f64) -> Vec<Vec<(usize, f32)>> {
-    (0..dst)
-        .map(|o| {
-            let a = (o as f64 * ratio).min((src - 1) as f64);
-            let b = ((o as f64 + 1.0) * ratio).min(src as f64).max(a + 1e-9);
-            let (first, last) = (a.floor() as usize, (b.ceil() as usize).min(src));
-            let taps: Vec<(usize, f64)> = (first..last)
-                .map(|i| (i, b.min(i as f64 + 1.0) - a.max(i as f64)))
-                .filter(|&(_, w)| w > 0.0)
-                .collect();
-            let total: f64 = taps.iter().map(|t| t.1).sum();
-            taps.into_iter()
-                .map(|(i, w)| (i, (w / total) as f32))
-                .collect()
-        })
-        .collect()
 }
 
 #[cfg(test)]
