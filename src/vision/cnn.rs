@@ -175,7 +175,7 @@ fn relu6(v: f32) -> f32 {
 /// `c = a (m x k) * b (k x n)`, all row-major, `c` overwritten.
 #[cfg(test)]
 fn gemm(m: usize, k: usize, n: usize, a: &[f32], b: &[f32], c: &mut [f32]) {
-    gemm_strided(m, k, n, a, b, n, c, n);
+    gemm_general((m, k, n), a, (b, n, 1), (c, n));
 }
 
 impl Pointwise {
@@ -211,9 +211,10 @@ impl Depthwise {
             y0: 0,
             rows: x.height,
             height: x.height,
+            phased: false,
         };
         let mut phases = Vec::new();
-        self.apply_rows(&src, 0, oh, &mut out.data, &mut phases);
+        self.apply_rows_taps(&src, 0, oh, &mut out.data, &mut phases);
         out
     }
 
@@ -224,8 +225,11 @@ impl Depthwise {
     /// Tap by tap over whole output rows: for each kernel weight, the
     /// output columns whose input column lies inside the image get
     /// `weight * input` added (a contiguous, vectorised loop at stride 1),
-    /// so that no sample tests the border.
-    fn apply_rows(
+    /// so that no sample tests the border. (The reference of
+    /// [`Self::apply_rows`], and its path for kernels other than 3x3 and
+    /// 5x5.)
+    #[inline(always)]
+    fn apply_rows_taps(
         &self,
         x: &Rows<'_>,
         oy0: usize,
@@ -233,6 +237,7 @@ impl Depthwise {
         dst_all: &mut [f32],
         phases: &mut Vec<f32>,
     ) {
+        debug_assert!(!x.phased, "the reference reads rows as they are");
         let (k, s) = (self.k, self.stride);
         let (ow, left) = same_padding(x.width, k, s);
         let (_, top) = same_padding(x.height, k, s);
@@ -247,19 +252,7 @@ impl Depthwise {
         for c in 0..self.channels {
             let src = &x.data[c * x.plane..c * x.plane + x.rows * x.width];
             if s == 2 {
-                for (row, split) in src
-                    .chunks_exact(x.width)
-                    .zip(phases.chunks_exact_mut(2 * half))
-                {
-                    let (even, odd) = split.split_at_mut(half);
-                    for (i, &v) in row.iter().enumerate() {
-                        if i % 2 == 0 {
-                            even[i / 2] = v;
-                        } else {
-                            odd[i / 2] = v;
-                        }
-                    }
-                }
+                split_phases(src, x.width, half, phases);
             }
             let kernel = &self.weight[c * k * k..(c + 1) * k * k];
             let dst = &mut dst_all[c * band..(c + 1) * band];
@@ -322,10 +315,179 @@ impl Depthwise {
             }
         }
     }
+
+    /// [`Self::apply_rows_taps`] with every tap of an output value summed
+    /// in one pass (3x3 and 5x5 kernels): each output row is written once,
+    /// its interior columns (every tap inside the image) by a vectorised
+    /// loop over the `k * k` input runs, a row outside the image read as
+    /// zeros; the few border columns one at a time. The taps are added in
+    /// the same order (row by row, column by column), so the values equal
+    /// the reference's up to the sign of a zero.
+    #[inline(always)]
+    fn apply_rows(
+        &self,
+        x: &Rows<'_>,
+        oy0: usize,
+        oy1: usize,
+        dst_all: &mut [f32],
+        scratch: &mut DepthwiseScratch,
+    ) {
+        match self.k {
+            3 => self.apply_rows_fused::<3, 9>(x, oy0, oy1, dst_all, scratch),
+            5 => self.apply_rows_fused::<5, 25>(x, oy0, oy1, dst_all, scratch),
+            _ => self.apply_rows_taps(x, oy0, oy1, dst_all, &mut scratch.phases),
+        }
+    }
+
+    #[inline(always)]
+    fn apply_rows_fused<const K: usize, const N: usize>(
+        &self,
+        x: &Rows<'_>,
+        oy0: usize,
+        oy1: usize,
+        dst_all: &mut [f32],
+        scratch: &mut DepthwiseScratch,
+    ) {
+        let s = self.stride;
+        let (ow, left) = same_padding(x.width, K, s);
+        let (_, top) = same_padding(x.height, K, s);
+        let band = (oy1 - oy0) * ow;
+        // Output columns whose every tap lies inside the image:
+        // ox * s >= left and ox * s + K - 1 - left < width.
+        let lo = left.div_ceil(s).min(ow);
+        let hi = match (x.width + left).checked_sub(K) {
+            Some(span) => (span / s + 1).min(ow),
+            None => 0,
+        }
+        .max(lo);
+        // A row's samples as the taps read them: at stride 2 its even
+        // samples, then its odd ones.
+        let half = x.width.div_ceil(2);
+        let row_len = if s == 2 { 2 * half } else { x.width };
+        let DepthwiseScratch { phases, zeros } = scratch;
+        zeros.clear();
+        zeros.resize(row_len, 0.0);
+        let split = s == 2 && !x.phased;
+        if split {
+            phases.clear();
+            phases.resize(row_len * x.rows, 0.0);
+        }
+        // Where tap column dx of output column `lo` starts in a row.
+        let starts: [usize; K] = std::array::from_fn(|dx| {
+            let first = (lo * s + dx).saturating_sub(left);
+            if s == 2 {
+                (first % 2) * half + first / 2
+            } else {
+                first
+            }
+        });
+        for c in 0..self.channels {
+            let held = if x.phased { row_len } else { x.width };
+            let src = &x.data[c * x.plane..][..x.rows * held];
+            if split {
+                split_phases(src, x.width, half, phases);
+            }
+            let rows: &[f32] = if split { phases } else { src };
+            let kernel: &[f32; N] = match self.weight[c * N..(c + 1) * N].try_into() {
+                Ok(k) => k,
+                Err(_) => return,
+            };
+            let bias = self.bias[c];
+            let dst = &mut dst_all[c * band..(c + 1) * band];
+            for oy in oy0..oy1 {
+                // Each kernel row's input row (zeros outside the image).
+                let line: [&[f32]; K] = std::array::from_fn(|dy| {
+                    match (oy * s + dy)
+                        .checked_sub(top)
+                        .filter(|&y| y < x.height)
+                        .and_then(|y| y.checked_sub(x.y0))
+                        .filter(|&y| y < x.rows)
+                    {
+                        Some(y) => &rows[y * row_len..(y + 1) * row_len],
+                        None => &zeros[..],
+                    }
+                });
+                let out = &mut dst[(oy - oy0) * ow..(oy - oy0 + 1) * ow];
+                if hi > lo {
+                    let n = hi - lo;
+                    let taps: [&[f32]; N] =
+                        std::array::from_fn(|t| &line[t / K][starts[t % K]..][..n]);
+                    fused_taps(&mut out[lo..hi], bias, kernel, &taps);
+                }
+                for ox in (0..lo).chain(hi..ow) {
+                    let mut a = bias;
+                    for (dy, line) in line.iter().enumerate() {
+                        for dx in 0..K {
+                            let Some(col) =
+                                (ox * s + dx).checked_sub(left).filter(|&i| i < x.width)
+                            else {
+                                continue;
+                            };
+                            let i = if s == 2 {
+                                (col % 2) * half + col / 2
+                            } else {
+                                col
+                            };
+                            a += kernel[dy * K + dx] * line[i];
+                        }
+                    }
+                    out[ox] = relu6(a);
+                }
+            }
+        }
+    }
+}
+
+/// `out[i] = relu6(bias + sum_t kernel[t] * taps[t][i])`, the taps added in
+/// order: a vectorised loop (each run at least `out`'s length).
+#[inline(always)]
+fn fused_taps<const N: usize>(out: &mut [f32], bias: f32, kernel: &[f32; N], taps: &[&[f32]; N]) {
+    let n = out.len();
+    let taps: [&[f32]; N] = std::array::from_fn(|t| &taps[t][..n]);
+    for (i, o) in out.iter_mut().enumerate() {
+        let mut a = bias;
+        for t in 0..N {
+            a += kernel[t] * taps[t][i];
+        }
+        *o = relu6(a);
+    }
+}
+
+/// A channel's rows (`width` samples each) split into their even samples,
+/// then their odd ones (`2 * half` values per row in `phases`): at stride
+/// 2 every tap reads a contiguous run of one of them.
+#[inline(always)]
+fn split_phases(src: &[f32], width: usize, half: usize, phases: &mut [f32]) {
+    for (row, split) in src
+        .chunks_exact(width)
+        .zip(phases.chunks_exact_mut(2 * half))
+    {
+        let (even, odd) = split.split_at_mut(half);
+        // Pairs (a contiguous, vectorised deinterleave), then the odd
+        // width's last sample.
+        let pairs = row.chunks_exact(2);
+        if let [last] = pairs.remainder() {
+            even[half - 1] = *last;
+        }
+        for ((pair, e), o) in pairs.zip(even.iter_mut()).zip(odd.iter_mut()) {
+            *e = pair[0];
+            *o = pair[1];
+        }
+    }
+}
+
+/// The depthwise convolution's buffers: a band's rows split by
+/// [`split_phases`], and a row of zeros.
+#[derive(Default)]
+struct DepthwiseScratch {
+    phases: Vec<f32>,
+    zeros: Vec<f32>,
 }
 
 /// Rows `y0..y0 + rows` of a channels-first map of `height` rows: channel
-/// `c`'s row `y0 + r` at `data[c * plane + r * width..]`.
+/// `c`'s row `y0 + r` at `data[c * plane + r * width..]`, or where
+/// `phased`, at `data[c * plane + r * 2 * ceil(width / 2)..]`, its even
+/// samples then its odd ones (as [`split_phases`] leaves them).
 struct Rows<'a> {
     data: &'a [f32],
     plane: usize,
@@ -333,6 +495,7 @@ struct Rows<'a> {
     y0: usize,
     rows: usize,
     height: usize,
+    phased: bool,
 }
 
 /// Output rows of a block computed at a time: the expanded map is held
@@ -346,7 +509,7 @@ const BAND_ROWS: usize = 8;
 struct Scratch {
     expanded: Vec<f32>,
     depthwise: Vec<f32>,
-    phases: Vec<f32>,
+    dw: DepthwiseScratch,
 }
 
 impl Block {
@@ -354,150 +517,341 @@ impl Block {
     /// ([`banded`]: the bands on every compute thread): the expansion of
     /// just the input rows a band reads, its depthwise convolution and its
     /// projection.
-    fn apply(&self, x: &FeatureMap, deadline: Deadline) -> Result<FeatureMap, VisionError> {
+    /// Its values are `buffer` reused.
+    fn apply(
+        &self,
+        x: &FeatureMap,
+        deadline: Deadline,
+        buffer: Vec<f32>,
+    ) -> Result<FeatureMap, VisionError> {
+        let dw = &self.depthwise;
+        let (ow, _) = same_padding(x.width, dw.k, dw.stride);
+        let (oh, _) = same_padding(x.height, dw.k, dw.stride);
+        banded(
+            self.project.out,
+            ow,
+            oh,
+            deadline,
+            buffer,
+            |scratch, oy0, oy1, dst| self.band(x, scratch, oy0, oy1, dst),
+        )
+    }
+
+    /// Output rows `oy0..oy1` of the block into `dst`, on the best
+    /// instruction set of the processor ([`crate::vision::simd`]: the same
+    /// operations in the same order on every path, so the same features
+    /// bit for bit).
+    fn band(
+        &self,
+        x: &FeatureMap,
+        scratch: &mut Scratch,
+        oy0: usize,
+        oy1: usize,
+        dst: &mut BandOut<'_>,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        match crate::vision::simd::level() {
+            // SAFETY: the features were detected at run time.
+            crate::vision::simd::Simd::Avx512 => {
+                return unsafe { self.band_avx512(x, scratch, oy0, oy1, dst) }
+            }
+            // SAFETY: the features were detected at run time.
+            crate::vision::simd::Simd::Avx2 => {
+                return unsafe { self.band_avx2(x, scratch, oy0, oy1, dst) }
+            }
+            crate::vision::simd::Simd::Portable => {}
+        }
+        self.band_body(x, scratch, oy0, oy1, dst)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
+    unsafe fn band_avx512(
+        &self,
+        x: &FeatureMap,
+        scratch: &mut Scratch,
+        oy0: usize,
+        oy1: usize,
+        dst: &mut BandOut<'_>,
+    ) {
+        self.band_body(x, scratch, oy0, oy1, dst)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn band_avx2(
+        &self,
+        x: &FeatureMap,
+        scratch: &mut Scratch,
+        oy0: usize,
+        oy1: usize,
+        dst: &mut BandOut<'_>,
+    ) {
+        self.band_body(x, scratch, oy0, oy1, dst)
+    }
+
+    #[inline(always)]
+    fn band_body(
+        &self,
+        x: &FeatureMap,
+        scratch: &mut Scratch,
+        oy0: usize,
+        oy1: usize,
+        dst: &mut BandOut<'_>,
+    ) {
         let dw = &self.depthwise;
         let (k, s) = (dw.k, dw.stride);
         let (ow, _) = same_padding(x.width, k, s);
         let (oh, top) = same_padding(x.height, k, s);
         let plane_out = ow * oh;
         let mid = dw.channels;
-        banded(
-            self.project.out,
-            ow,
-            oh,
-            deadline,
-            |scratch, oy0, oy1, dst| {
-                let Scratch {
-                    expanded,
-                    depthwise,
-                    phases,
-                } = scratch;
-                // The input rows the band reads.
-                let y0 = (oy0 * s).saturating_sub(top);
-                let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
-                let rows = y1 - y0;
-                let src = match &self.expand {
-                    Some(e) => {
-                        let n = rows * x.width;
-                        expanded.resize(mid * n, 0.0);
-                        // expanded (mid x n) = weight (mid x inp) * x's rows
-                        // (inp x n, channel stride plane).
-                        gemm_strided(
-                            mid,
-                            e.inp,
-                            n,
+        let Scratch {
+            expanded,
+            depthwise,
+            dw: dw_scratch,
+        } = scratch;
+        // The input rows the band reads.
+        let y0 = (oy0 * s).saturating_sub(top);
+        let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
+        let rows = y1 - y0;
+        let src = match &self.expand {
+            // At stride 2 (3x3 and 5x5 kernels) the expansion writes each
+            // row's even samples, then its odd ones, as the depthwise
+            // convolution reads them: two GEMMs a row, reading every
+            // second column.
+            Some(e) if s == 2 && matches!(k, 3 | 5) => {
+                let half = x.width.div_ceil(2);
+                let n = rows * 2 * half;
+                expanded.resize(mid * n, 0.0);
+                for r in 0..rows {
+                    let row = &x.data[(y0 + r) * x.width..];
+                    for (phase, cols) in [(0, half), (1, x.width / 2)] {
+                        gemm_general(
+                            (mid, e.inp, cols),
                             &e.weight,
-                            &x.data[y0 * x.width..],
-                            x.width * x.height,
-                            expanded,
-                            n,
+                            (&row[phase..], x.width * x.height, 2),
+                            (&mut expanded[r * 2 * half + phase * half..], n),
                         );
-                        for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
-                            for v in plane {
-                                *v = relu6(*v + b);
-                            }
-                        }
-                        Rows {
-                            data: expanded,
-                            plane: n,
-                            width: x.width,
-                            y0,
-                            rows,
-                            height: x.height,
-                        }
-                    }
-                    None => Rows {
-                        data: &x.data[y0 * x.width..],
-                        plane: x.width * x.height,
-                        width: x.width,
-                        y0,
-                        rows,
-                        height: x.height,
-                    },
-                };
-                let band = (oy1 - oy0) * ow;
-                depthwise.resize(mid * band, 0.0);
-                dw.apply_rows(&src, oy0, oy1, depthwise, phases);
-                // The band's rows of the output.
-                let p = &self.project;
-                gemm_into(p.out, p.inp, band, &p.weight, depthwise, dst, band);
-                for (c, o) in dst.chunks_exact_mut(band).enumerate() {
-                    if self.skip {
-                        let i = &x.data[c * plane_out + oy0 * ow..][..band];
-                        for (o, &i) in o.iter_mut().zip(i) {
-                            *o += p.bias[c] + i;
-                        }
-                    } else {
-                        for o in o.iter_mut() {
-                            *o += p.bias[c];
-                        }
                     }
                 }
+                for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
+                    for v in plane {
+                        *v = relu6(*v + b);
+                    }
+                }
+                Rows {
+                    data: expanded,
+                    plane: n,
+                    width: x.width,
+                    y0,
+                    rows,
+                    height: x.height,
+                    phased: true,
+                }
+            }
+            Some(e) => {
+                let n = rows * x.width;
+                expanded.resize(mid * n, 0.0);
+                // expanded (mid x n) = weight (mid x inp) * x's rows
+                // (inp x n, channel stride plane).
+                gemm_general(
+                    (mid, e.inp, n),
+                    &e.weight,
+                    (&x.data[y0 * x.width..], x.width * x.height, 1),
+                    (expanded, n),
+                );
+                for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
+                    for v in plane {
+                        *v = relu6(*v + b);
+                    }
+                }
+                Rows {
+                    data: expanded,
+                    plane: n,
+                    width: x.width,
+                    y0,
+                    rows,
+                    height: x.height,
+                    phased: false,
+                }
+            }
+            None => Rows {
+                data: &x.data[y0 * x.width..],
+                plane: x.width * x.height,
+                width: x.width,
+                y0,
+                rows,
+                height: x.height,
+                phased: false,
             },
-        )
+        };
+        let band = (oy1 - oy0) * ow;
+        depthwise.resize(mid * band, 0.0);
+        dw.apply_rows(&src, oy0, oy1, depthwise, dw_scratch);
+        // The band's rows of the output.
+        let p = &self.project;
+        dst.gemm(p.inp, &p.weight, depthwise, band);
+        for c in 0..p.out {
+            let o = dst.channel(c);
+            if self.skip {
+                let i = &x.data[c * plane_out + oy0 * ow..][..band];
+                for (o, &i) in o.iter_mut().zip(i) {
+                    *o += p.bias[c] + i;
+                }
+            } else {
+                for o in o.iter_mut() {
+                    *o += p.bias[c];
+                }
+            }
+        }
     }
 }
 
 /// A layer's `channels x oh x ow` output computed [`BAND_ROWS`] rows at a
 /// time, the bands on every compute thread (each with its own
-/// [`Scratch`]): `band(scratch, oy0, oy1, dst)` fills `dst` with rows
-/// `oy0..oy1` of every channel (`channels x (oy1 - oy0) x ow`,
-/// contiguous). Gives up once `deadline` has passed, looked at before
-/// every band.
+/// [`Scratch`]): `band(scratch, oy0, oy1, dst)` writes rows `oy0..oy1` of
+/// every channel through `dst`, straight into the output map, whose
+/// values are `buffer` reused (its capacity kept from layer to layer; every
+/// value is written by a band). Gives up once `deadline` has passed,
+/// looked at before every band.
 fn banded<F>(
     channels: usize,
     ow: usize,
     oh: usize,
     deadline: Deadline,
+    mut buffer: Vec<f32>,
     band: F,
 ) -> Result<FeatureMap, VisionError>
 where
-    F: Fn(&mut Scratch, usize, usize, &mut [f32]) + Sync,
+    F: Fn(&mut Scratch, usize, usize, &mut BandOut<'_>) + Sync,
 {
+    let plane = ow * oh;
+    buffer.resize(channels * plane, 0.0);
+    let base = SharedMut(buffer.as_mut_ptr());
+    let base = &base;
     let starts: Vec<usize> = (0..oh).step_by(BAND_ROWS).collect();
-    let bands = starts
+    starts
         .par_iter()
         .map_init(Scratch::default, |scratch, &oy0| {
             if deadline.passed() {
                 return Err(VisionError::DeadlineExceeded);
             }
             let oy1 = (oy0 + BAND_ROWS).min(oh);
-            let mut dst = vec![0.0f32; channels * (oy1 - oy0) * ow];
+            // SAFETY: `buffer` holds `channels * plane` values and outlives
+            // the bands (it is not touched until they end); bands cover
+            // disjoint rows, so no two write the same value.
+            let mut dst =
+                unsafe { BandOut::new(base.get(), channels, plane, oy0 * ow, (oy1 - oy0) * ow) };
             band(scratch, oy0, oy1, &mut dst);
-            Ok(dst)
+            Ok(())
         })
-        .collect::<Result<Vec<_>, _>>()?;
-    let mut out = FeatureMap::zeros(channels, ow, oh);
-    let plane = ow * oh;
-    for (&oy0, dst) in starts.iter().zip(&bands) {
-        let n = dst.len() / channels.max(1);
-        for (c, rows) in dst.chunks_exact(n.max(1)).enumerate() {
-            out.data[c * plane + oy0 * ow..][..n].copy_from_slice(rows);
-        }
-    }
-    Ok(out)
+        .collect::<Result<Vec<()>, _>>()?;
+    Ok(FeatureMap {
+        channels,
+        width: ow,
+        height: oh,
+        data: buffer,
+    })
 }
 
-/// `c = a (m x k, row-major) * b`, where `b`'s row `r` starts at `b[r *
-/// b_stride]` and has `n` values; `c` (`m x n`, row stride `c_stride`)
-/// overwritten.
-#[allow(clippy::too_many_arguments)]
-fn gemm_strided(
-    m: usize,
-    k: usize,
+/// The output map's values, shared by the bands that write its disjoint
+/// rows.
+struct SharedMut(*mut f32);
+
+// SAFETY: the bands write disjoint values through it (see `banded`).
+unsafe impl Sync for SharedMut {}
+
+impl SharedMut {
+    fn get(&self) -> *mut f32 {
+        self.0
+    }
+}
+
+/// One band's rows of every channel of a channels-first map: channel
+/// `c`'s `n` values at `c * plane + offset`.
+struct BandOut<'a> {
+    ptr: *mut f32,
+    channels: usize,
+    plane: usize,
+    offset: usize,
     n: usize,
+    _map: std::marker::PhantomData<&'a mut [f32]>,
+}
+
+impl BandOut<'_> {
+    /// # Safety
+    /// `ptr` must point at `channels * plane` values, valid for the
+    /// band's life, with `offset + n <= plane`, and nothing else may read
+    /// or write channel `c`'s values `c * plane + offset..+ n` meanwhile.
+    unsafe fn new(ptr: *mut f32, channels: usize, plane: usize, offset: usize, n: usize) -> Self {
+        debug_assert!(offset + n <= plane);
+        Self {
+            ptr,
+            channels,
+            plane,
+            offset,
+            n,
+            _map: std::marker::PhantomData,
+        }
+    }
+
+    /// Channel `c`'s values of the band.
+    fn channel(&mut self, c: usize) -> &mut [f32] {
+        assert!(c < self.channels);
+        // SAFETY: inside the map (`new`'s contract), the band's own, and
+        // borrowed from `self` exclusively.
+        unsafe {
+            std::slice::from_raw_parts_mut(self.ptr.add(c * self.plane + self.offset), self.n)
+        }
+    }
+
+    /// The band = `a (channels x k, row-major) * b`, `b`'s row `r` at
+    /// `b[r * b_stride..][..n]`.
+    fn gemm(&mut self, k: usize, a: &[f32], b: &[f32], b_stride: usize) {
+        let (m, n) = (self.channels, self.n);
+        assert!(a.len() >= m * k);
+        assert!(k == 0 || b.len() >= (k - 1) * b_stride + n);
+        // SAFETY: the asserts bound every read of `a` and `b`; the writes
+        // are the band's values c * plane + offset + j, j < n (`new`'s
+        // contract), which alias neither `a` nor `b` (the map is written
+        // only through this band).
+        unsafe {
+            matrixmultiply::sgemm(
+                m,
+                k,
+                n,
+                1.0,
+                a.as_ptr(),
+                k as isize,
+                1,
+                b.as_ptr(),
+                b_stride as isize,
+                1,
+                0.0,
+                self.ptr.add(self.offset),
+                self.plane as isize,
+                1,
+            );
+        }
+    }
+}
+
+/// `c = a (m x k, row-major) * b`: `b = (values, row stride, column
+/// stride)`, its row `r`'s `n` values at `values[r * row_stride + j *
+/// column_stride]`; `c = (values, row stride)`, its `m x n` values (row
+/// `i` at `values[i * row_stride..][..n]`) overwritten.
+fn gemm_general(
+    (m, k, n): (usize, usize, usize),
     a: &[f32],
-    b: &[f32],
-    b_stride: usize,
-    c: &mut [f32],
-    c_stride: usize,
+    (b, rsb, csb): (&[f32], usize, usize),
+    (c, rsc): (&mut [f32], usize),
 ) {
     assert!(a.len() >= m * k);
-    assert!(k == 0 || b.len() >= (k - 1) * b_stride + n);
-    assert!(m == 0 || c.len() >= (m - 1) * c_stride + n);
+    assert!(k == 0 || n == 0 || b.len() > (k - 1) * rsb + (n - 1) * csb);
+    assert!(m == 0 || n == 0 || c.len() >= (m - 1) * rsc + n);
     // SAFETY: the asserts above bound every element read or written:
-    // a[i * k + l], b[l * b_stride + j], c[i * c_stride + j] for i < m,
-    // l < k, j < n; `c` does not alias `a` or `b` (distinct borrows).
+    // a[i * k + l], b[l * rsb + j * csb], c[i * rsc + j] for i < m, l < k,
+    // j < n; `c` does not alias `a` or `b` (distinct borrows).
     unsafe {
         matrixmultiply::sgemm(
             m,
@@ -508,20 +862,14 @@ fn gemm_strided(
             k as isize,
             1,
             b.as_ptr(),
-            b_stride as isize,
-            1,
+            rsb as isize,
+            csb as isize,
             0.0,
             c.as_mut_ptr(),
-            c_stride as isize,
+            rsc as isize,
             1,
         );
     }
-}
-
-/// [`gemm_strided`] with `b` contiguous (`k x n`) and `c`'s rows `c_stride`
-/// apart.
-fn gemm_into(m: usize, k: usize, n: usize, a: &[f32], b: &[f32], c: &mut [f32], c_stride: usize) {
-    gemm_strided(m, k, n, a, b, n, c, c_stride);
 }
 
 impl Backbone {
@@ -650,13 +998,20 @@ impl Backbone {
     /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
     /// 27 rows, [`BAND_ROWS`] output rows at a time) times the stem's
     /// weights, then ReLU6.
-    fn stem(&self, img: &ColorImage, deadline: Deadline) -> Result<FeatureMap, VisionError> {
+    ///
+    /// Its values are `buffer` reused.
+    fn stem(
+        &self,
+        img: &ColorImage,
+        deadline: Deadline,
+        buffer: Vec<f32>,
+    ) -> Result<FeatureMap, VisionError> {
         let (w, h) = (img.width(), img.height());
         let (ow, left) = same_padding(w, 3, 2);
         let (oh, top) = same_padding(h, 3, 2);
         let out_c = self.stem_bias.len();
         let pixels = img.data();
-        banded(out_c, ow, oh, deadline, |scratch, oy0, oy1, dst| {
+        banded(out_c, ow, oh, deadline, buffer, |scratch, oy0, oy1, dst| {
             let n = (oy1 - oy0) * ow;
             let patches = &mut scratch.expanded;
             patches.clear();
@@ -690,9 +1045,9 @@ impl Backbone {
                     }
                 }
             }
-            gemm_into(out_c, 27, n, &self.stem, patches, dst, n);
-            for (plane, &b) in dst.chunks_exact_mut(n).zip(&self.stem_bias) {
-                for v in plane {
+            dst.gemm(27, &self.stem, patches, n);
+            for (c, &b) in self.stem_bias.iter().enumerate() {
+                for v in dst.channel(c) {
                     *v = relu6(*v + b);
                 }
             }
@@ -752,9 +1107,13 @@ impl Backbone {
         img: &ColorImage,
         deadline: Deadline,
     ) -> Result<FeatureMap, VisionError> {
-        let mut x = self.stem(img, deadline)?;
+        // Two buffers, each layer's output written over the one before
+        // its input (after the first two, no layer allocates).
+        let mut x = self.stem(img, deadline, Vec::new())?;
+        let mut spare = Vec::new();
         for b in &self.blocks {
-            x = b.apply(&x, deadline)?;
+            let y = b.apply(&x, deadline, spare)?;
+            spare = std::mem::replace(&mut x, y).data;
         }
         Ok(x)
     }
@@ -968,6 +1327,81 @@ mod tests {
                 .zip(&b.data)
                 .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
             assert!(worst <= 1e-4, "{w}x{h}: worst {worst}");
+        }
+    }
+
+    /// The fused depthwise convolution (every tap of a value in one
+    /// pass; rows as they are, or split into phases as the stride-2
+    /// expansion writes them) equals the tap-by-tap reference exactly, in
+    /// bands of a few rows, at every size around the borders.
+    #[test]
+    fn the_fused_depthwise_is_the_tap_by_tap_one() {
+        let mut rng = crate::vision::rng::SplitMix64::new(9);
+        let mut random = |n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|_| (rng.next_f64() * 4.0 - 2.0) as f32)
+                .collect()
+        };
+        for (k, stride) in [(3, 1), (3, 2), (5, 1), (5, 2)] {
+            for (w, h) in [(1, 1), (2, 3), (4, 2), (5, 4), (9, 7), (17, 12), (40, 9)] {
+                let channels = 3;
+                let dw = Depthwise {
+                    channels,
+                    k,
+                    stride,
+                    weight: random(channels * k * k),
+                    bias: random(channels),
+                };
+                let x = FeatureMap {
+                    channels,
+                    width: w,
+                    height: h,
+                    data: random(channels * w * h),
+                };
+                let want = dw.apply(&x);
+                let (ow, oh) = (want.width, want.height);
+                let half = w.div_ceil(2);
+                let mut split = vec![0.0; channels * h * 2 * half];
+                for c in 0..channels {
+                    split_phases(
+                        &x.data[c * w * h..][..w * h],
+                        w,
+                        half,
+                        &mut split[c * h * 2 * half..][..h * 2 * half],
+                    );
+                }
+                let phased_too = if stride == 2 {
+                    vec![false, true]
+                } else {
+                    vec![false]
+                };
+                for phased in phased_too {
+                    let src = Rows {
+                        data: if phased { &split } else { &x.data },
+                        plane: if phased { h * 2 * half } else { w * h },
+                        width: w,
+                        y0: 0,
+                        rows: h,
+                        height: h,
+                        phased,
+                    };
+                    let mut got = vec![f32::NAN; channels * ow * oh];
+                    let mut scratch = DepthwiseScratch::default();
+                    for oy0 in (0..oh).step_by(3) {
+                        let oy1 = (oy0 + 3).min(oh);
+                        let mut band = vec![f32::NAN; channels * (oy1 - oy0) * ow];
+                        dw.apply_rows(&src, oy0, oy1, &mut band, &mut scratch);
+                        for c in 0..channels {
+                            got[c * ow * oh + oy0 * ow..][..(oy1 - oy0) * ow]
+                                .copy_from_slice(&band[c * (oy1 - oy0) * ow..][..(oy1 - oy0) * ow]);
+                        }
+                    }
+                    assert_eq!(
+                        got, want.data,
+                        "k {k} stride {stride} {w}x{h} phased {phased}"
+                    );
+                }
+            }
         }
     }
 
