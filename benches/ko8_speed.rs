@@ -79,6 +79,8 @@ fn print(label: &str, m: &[f64]) {
 }
 
 fn main() {
+    // The server's allocator settings too.
+    sdhop::infer::memory::keep_freed_pages();
     let root = PathBuf::from(arg("--data", "../shared/data/cmu_ko8".to_string()));
     // `--image-dir multiple/test/bakingpan`: the multi-view part's
     // photographs of an object (any side) instead of the cup's single-pose

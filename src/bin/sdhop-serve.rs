@@ -241,6 +241,7 @@ async fn shutdown_signal(state: Arc<AppState>, drain: Duration) {
 }
 
 fn main() -> ExitCode {
+    sdhop::infer::memory::keep_freed_pages();
     let args = Args::parse();
     if args.check_ready {
         return if check_ready(args.addr) {
