@@ -501,13 +501,17 @@ struct Rows<'a> {
 /// Output rows of a block computed at a time: the expanded map is held
 /// for one band only (a few hundred kilobytes rather than, at the
 /// largest pyramid levels, a few hundred megabytes allocated and faulted
-/// in per layer).
-const BAND_ROWS: usize = 8;
+/// in per layer), the rows two bands share expanded once where one
+/// thread runs both (4 rows: 548-565 ms for the backbone bench's four
+/// levels against 578-585 at 8).
+const BAND_ROWS: usize = 4;
 
 /// Buffers of the banded forward, reused from band to band.
 #[derive(Default)]
 struct Scratch {
     expanded: Vec<f32>,
+    /// The input rows `expanded` holds (of the layer the scratch serves).
+    held: Option<(usize, usize)>,
     depthwise: Vec<f32>,
     dw: DepthwiseScratch,
 }
@@ -607,6 +611,7 @@ impl Block {
         let mid = dw.channels;
         let Scratch {
             expanded,
+            held,
             depthwise,
             dw: dw_scratch,
         } = scratch;
@@ -615,64 +620,65 @@ impl Block {
         let y1 = ((oy1 - 1) * s + k).saturating_sub(top).min(x.height);
         let rows = y1 - y0;
         let src = match &self.expand {
-            // At stride 2 (3x3 and 5x5 kernels) the expansion writes each
-            // row's even samples, then its odd ones, as the depthwise
-            // convolution reads them: two GEMMs a row, reading every
-            // second column.
-            Some(e) if s == 2 && matches!(k, 3 | 5) => {
-                let half = x.width.div_ceil(2);
-                let n = rows * 2 * half;
-                expanded.resize(mid * n, 0.0);
-                for r in 0..rows {
-                    let row = &x.data[(y0 + r) * x.width..];
-                    for (phase, cols) in [(0, half), (1, x.width / 2)] {
-                        gemm_general(
-                            (mid, e.inp, cols),
-                            &e.weight,
-                            (&row[phase..], x.width * x.height, 2),
-                            (&mut expanded[r * 2 * half + phase * half..], n),
-                        );
-                    }
-                }
-                for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
-                    for v in plane {
-                        *v = relu6(*v + b);
-                    }
-                }
-                Rows {
-                    data: expanded,
-                    plane: n,
-                    width: x.width,
-                    y0,
-                    rows,
-                    height: x.height,
-                    phased: true,
-                }
-            }
             Some(e) => {
-                let n = rows * x.width;
-                expanded.resize(mid * n, 0.0);
-                // expanded (mid x n) = weight (mid x inp) * x's rows
-                // (inp x n, channel stride plane).
-                gemm_general(
-                    (mid, e.inp, n),
-                    &e.weight,
-                    (&x.data[y0 * x.width..], x.width * x.height, 1),
-                    (expanded, n),
-                );
-                for (plane, &b) in expanded.chunks_exact_mut(n).zip(&e.bias) {
-                    for v in plane {
+                // At stride 2 (3x3 and 5x5 kernels) the expansion writes
+                // each row's even samples, then its odd ones, as the
+                // depthwise convolution reads them: two GEMMs a row,
+                // reading every second column.
+                let phased = s == 2 && matches!(k, 3 | 5);
+                let half = x.width.div_ceil(2);
+                let row_len = if phased { 2 * half } else { x.width };
+                // Each channel's rows at a fixed stride (a band's rows at
+                // most), so that the rows the band before expanded and this
+                // one reads again stay where they are, moved to the front.
+                let plane = ((BAND_ROWS - 1) * s + k) * row_len;
+                expanded.resize(mid * plane, 0.0);
+                let (reuse, from) = match *held {
+                    Some((h0, h1)) if h0 <= y0 && y0 < h1 && h1 <= y1 => (h1 - y0, y0 - h0),
+                    _ => (0, 0),
+                };
+                if reuse > 0 && from > 0 {
+                    for c in expanded.chunks_exact_mut(plane) {
+                        c.copy_within(from * row_len..(from + reuse) * row_len, 0);
+                    }
+                }
+                *held = Some((y0, y1));
+                let new = &mut expanded[reuse * row_len..];
+                if phased {
+                    for r in reuse..rows {
+                        let row = &x.data[(y0 + r) * x.width..];
+                        for (phase, cols) in [(0, half), (1, x.width / 2)] {
+                            gemm_general(
+                                (mid, e.inp, cols),
+                                &e.weight,
+                                (&row[phase..], x.width * x.height, 2),
+                                (&mut new[(r - reuse) * row_len + phase * half..], plane),
+                            );
+                        }
+                    }
+                } else if rows > reuse {
+                    // expanded (mid x n) = weight (mid x inp) * x's rows
+                    // (inp x n, channel stride plane).
+                    gemm_general(
+                        (mid, e.inp, (rows - reuse) * x.width),
+                        &e.weight,
+                        (&x.data[(y0 + reuse) * x.width..], x.width * x.height, 1),
+                        (new, plane),
+                    );
+                }
+                for (c, &b) in expanded.chunks_exact_mut(plane).zip(&e.bias) {
+                    for v in &mut c[reuse * row_len..rows * row_len] {
                         *v = relu6(*v + b);
                     }
                 }
                 Rows {
                     data: expanded,
-                    plane: n,
+                    plane,
                     width: x.width,
                     y0,
                     rows,
                     height: x.height,
-                    phased: false,
+                    phased,
                 }
             }
             None => Rows {
