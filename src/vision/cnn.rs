@@ -506,6 +506,15 @@ struct Rows<'a> {
 /// levels against 578-585 at 8).
 const BAND_ROWS: usize = 4;
 
+/// One band of a block: its input map, its thread's buffers, its output
+/// rows and where they go.
+struct BandJob<'a, 'b> {
+    x: &'a FeatureMap,
+    scratch: &'a mut Scratch,
+    rows: (usize, usize),
+    dst: &'a mut BandOut<'b>,
+}
+
 /// Buffers of the banded forward, reused from band to band.
 #[derive(Default)]
 struct Scratch {
@@ -553,56 +562,43 @@ impl Block {
         oy1: usize,
         dst: &mut BandOut<'_>,
     ) {
+        let job = BandJob {
+            x,
+            scratch,
+            rows: (oy0, oy1),
+            dst,
+        };
         #[cfg(target_arch = "x86_64")]
         match crate::vision::simd::level() {
             // SAFETY: the features were detected at run time.
-            crate::vision::simd::Simd::Avx512 => {
-                return unsafe { self.band_avx512(x, scratch, oy0, oy1, dst) }
-            }
+            crate::vision::simd::Simd::Avx512 => return unsafe { self.band_avx512(job) },
             // SAFETY: the features were detected at run time.
-            crate::vision::simd::Simd::Avx2 => {
-                return unsafe { self.band_avx2(x, scratch, oy0, oy1, dst) }
-            }
+            crate::vision::simd::Simd::Avx2 => return unsafe { self.band_avx2(job) },
             crate::vision::simd::Simd::Portable => {}
         }
-        self.band_body(x, scratch, oy0, oy1, dst)
+        self.band_body(job)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl,avx2,fma")]
-    unsafe fn band_avx512(
-        &self,
-        x: &FeatureMap,
-        scratch: &mut Scratch,
-        oy0: usize,
-        oy1: usize,
-        dst: &mut BandOut<'_>,
-    ) {
-        self.band_body(x, scratch, oy0, oy1, dst)
+    unsafe fn band_avx512(&self, job: BandJob<'_, '_>) {
+        self.band_body(job)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn band_avx2(
-        &self,
-        x: &FeatureMap,
-        scratch: &mut Scratch,
-        oy0: usize,
-        oy1: usize,
-        dst: &mut BandOut<'_>,
-    ) {
-        self.band_body(x, scratch, oy0, oy1, dst)
+    unsafe fn band_avx2(&self, job: BandJob<'_, '_>) {
+        self.band_body(job)
     }
 
     #[inline(always)]
-    fn band_body(
-        &self,
-        x: &FeatureMap,
-        scratch: &mut Scratch,
-        oy0: usize,
-        oy1: usize,
-        dst: &mut BandOut<'_>,
-    ) {
+    fn band_body(&self, job: BandJob<'_, '_>) {
+        let BandJob {
+            x,
+            scratch,
+            rows: (oy0, oy1),
+            dst,
+        } = job;
         let dw = &self.depthwise;
         let (k, s) = (dw.k, dw.stride);
         let (ow, _) = same_padding(x.width, k, s);
@@ -822,22 +818,12 @@ impl BandOut<'_> {
         // contract), which alias neither `a` nor `b` (the map is written
         // only through this band).
         unsafe {
-            matrixmultiply::sgemm(
-                m,
-                k,
-                n,
-                1.0,
-                a.as_ptr(),
-                k as isize,
-                1,
-                b.as_ptr(),
-                b_stride as isize,
-                1,
-                0.0,
-                self.ptr.add(self.offset),
-                self.plane as isize,
-                1,
-            );
+            sgemm(
+                (m, k, n),
+                a,
+                (b.as_ptr(), b_stride, 1),
+                (self.ptr.add(self.offset), self.plane),
+            )
         }
     }
 }
@@ -858,6 +844,25 @@ fn gemm_general(
     // SAFETY: the asserts above bound every element read or written:
     // a[i * k + l], b[l * rsb + j * csb], c[i * rsc + j] for i < m, l < k,
     // j < n; `c` does not alias `a` or `b` (distinct borrows).
+    unsafe { sgemm((m, k, n), a, (b.as_ptr(), rsb, csb), (c.as_mut_ptr(), rsc)) }
+}
+
+/// `c = a (m x k, row-major) * b` by `matrixmultiply`: `b`'s element `(l,
+/// j)` at `b.0 + l * b.1 + j * b.2`, `c`'s `(i, j)` at `c.0 + i * c.1 + j`,
+/// overwritten.
+///
+/// # Safety
+/// `a` holds `m * k` values; every element of `b` and `c` so addressed
+/// for `l < k`, `i < m`, `j < n` is valid, and `c`'s do not overlap `a`'s
+/// or `b`'s or any that another thread reads or writes meanwhile.
+unsafe fn sgemm(
+    (m, k, n): (usize, usize, usize),
+    a: &[f32],
+    (b, rsb, csb): (*const f32, usize, usize),
+    (c, rsc): (*mut f32, usize),
+) {
+    debug_assert!(a.len() >= m * k);
+    // SAFETY: the caller's contract.
     unsafe {
         matrixmultiply::sgemm(
             m,
@@ -867,11 +872,11 @@ fn gemm_general(
             a.as_ptr(),
             k as isize,
             1,
-            b.as_ptr(),
+            b,
             rsb as isize,
             csb as isize,
             0.0,
-            c.as_mut_ptr(),
+            c,
             rsc as isize,
             1,
         );
