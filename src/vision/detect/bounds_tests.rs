@@ -265,4 +265,35 @@ fn clique_counts_are_the_distinct_segments_of_each_box() {
             }
         }
     }
+    // In any order (the count keeps the last box's cells: a step along the
+    // same rows updates them, any other query counts afresh).
+    let mut exact = CliqueCount::default();
+    for _ in 0..3000 {
+        let (rows, cols) = (
+            1 + (rng.next_u64() % 11) as usize,
+            1 + (rng.next_u64() % 15) as usize,
+        );
+        let x = (rng.next_u64() % (mw + cols) as u64) as isize - cols as isize + 1;
+        let y = (rng.next_u64() % (mh + rows) as u64) as isize - rows as isize + 1;
+        let (x0, x1) = (x.max(0), (x + cols as isize).min(mw as isize));
+        let (y0, y1) = (y.max(0), (y + rows as isize).min(mh as isize));
+        let mut seen = std::collections::HashSet::new();
+        for yy in y0..y1 {
+            for xx in x0..x1 {
+                seen.insert(seg[yy as usize * mw + xx as usize]);
+            }
+        }
+        let n = exact.count(&seg, (mw, mh), (rows, cols), (x, y));
+        assert_eq!(n as usize, seen.len(), "{rows}x{cols} at ({x}, {y})");
+        // And the next position along the row, as a scan asks.
+        let n = exact.count(&seg, (mw, mh), (rows, cols), (x + 1, y));
+        let (x0, x1) = ((x + 1).max(0), (x + 1 + cols as isize).min(mw as isize));
+        let mut seen = std::collections::HashSet::new();
+        for yy in y0..y1 {
+            for xx in x0..x1 {
+                seen.insert(seg[yy as usize * mw + xx as usize]);
+            }
+        }
+        assert_eq!(n as usize, seen.len(), "{rows}x{cols} at ({}, {y})", x + 1);
+    }
 }
