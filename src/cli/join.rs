@@ -4,7 +4,7 @@
 //! flags into its settings, prints the choice and saves the models.
 
 use super::*;
-use crate::train::routes::join::{choice_table, join_models, JoinSettings, Joined};
+use crate::train::routes::join::{choice_table, join_models, GuardScope, JoinSettings, Joined};
 
 #[derive(clap::Args)]
 pub(crate) struct JoinArgs {
@@ -86,6 +86,14 @@ pub(crate) struct JoinArgs {
     /// cross-object AUC; segmentation and VOC errors may rise as much).
     #[arg(long, default_value_t = JoinSettings::default().single_tolerance)]
     pub(crate) single_tolerance: f64,
+    /// What the single-pose guard holds. `set`: the means over objects of
+    /// the set's single-pose figures no worse than the unjoined set's
+    /// (within `--single-tolerance` per object), the choice being the set
+    /// that finds the objects best from any side (one object may give up
+    /// what another gains). `object`: each object's figures no worse than
+    /// its unjoined model's.
+    #[arg(long, value_enum, default_value_t = GuardScope::Set)]
+    pub(crate) guard_scope: GuardScope,
 }
 
 impl JoinArgs {
@@ -112,6 +120,7 @@ impl JoinArgs {
             colour_weight: self.colour_weight,
             min_gain: self.min_gain,
             single_tolerance: self.single_tolerance,
+            guard_scope: self.guard_scope,
         }
     }
 }
@@ -119,7 +128,7 @@ impl JoinArgs {
 pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
     let Joined { models, choice } = join_models(&args.settings())?;
     if let Some(c) = &choice {
-        for line in choice_table(c) {
+        for line in choice_table(c, args.guard_scope) {
             println!("{line}");
         }
     }

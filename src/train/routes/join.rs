@@ -8,6 +8,7 @@
 //! single-pose photographs ([`super::join_guard`]).
 
 use super::join_guard::SinglePoseGuard;
+use super::join_set;
 use super::photos::fold_range;
 use super::{load_model_dir, RouteError};
 use crate::data::Sample;
@@ -37,6 +38,20 @@ pub struct JoinSettings {
     pub colour_weight: Option<f64>,
     pub min_gain: f64,
     pub single_tolerance: f64,
+    /// What the single-pose guard holds: the set's figures or each
+    /// object's.
+    pub guard_scope: GuardScope,
+}
+
+/// What `--check-folds`' single-pose guard holds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum GuardScope {
+    /// The set's means over objects no worse than the unjoined set's
+    /// ([`super::join_set`]): the figures the acceptance measures.
+    #[default]
+    Set,
+    /// Each object's figures no worse than its unjoined model's.
+    Object,
 }
 
 impl Default for JoinSettings {
@@ -56,6 +71,7 @@ impl Default for JoinSettings {
             colour_weight: None,
             min_gain: 0.01,
             single_tolerance: 0.002,
+            guard_scope: GuardScope::Set,
         }
     }
 }
@@ -101,6 +117,59 @@ pub struct Choice {
     /// `None`: the base model unchanged.
     pub setting: Option<Setting>,
     pub candidates: Vec<Candidate>,
+    /// The base model as it is among `candidates` (not joined, its own
+    /// colour weight).
+    pub plain: Option<usize>,
+}
+
+/// The set's figures under a choice and left unjoined: the mean over
+/// objects of the held-out figure from any side and of the single-pose
+/// AUC, cross AUC, refined segmentation and VOC errors.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SetFigures {
+    pub guard_scope: &'static str,
+    pub any_side: f64,
+    pub single: [f64; 4],
+    pub unjoined_any_side: f64,
+    pub unjoined_single: [f64; 4],
+}
+
+/// The set's figures of `choice`; `None` where an object lacks them.
+pub fn set_figures(choice: &[Choice], scope: GuardScope) -> Option<SetFigures> {
+    let mut sum = [0.0; 10];
+    for ch in choice {
+        let plain = &ch.candidates[ch.plain?];
+        let chosen = match ch.setting {
+            Some(s) => ch.candidates.iter().find(|c| c.setting == s)?,
+            None => plain,
+        };
+        let (a, b) = (chosen.single?, plain.single?);
+        let row = [
+            chosen.held_out,
+            a[0],
+            a[1],
+            a[2],
+            a[3],
+            plain.held_out,
+            b[0],
+            b[1],
+            b[2],
+            b[3],
+        ];
+        sum.iter_mut().zip(row).for_each(|(s, x)| *s += x);
+    }
+    let n = choice.len().max(1) as f64;
+    let m: Vec<f64> = sum.iter().map(|s| s / n).collect();
+    Some(SetFigures {
+        guard_scope: match scope {
+            GuardScope::Set => "set",
+            GuardScope::Object => "object",
+        },
+        any_side: m[0],
+        single: [m[1], m[2], m[3], m[4]],
+        unjoined_any_side: m[5],
+        unjoined_single: [m[6], m[7], m[8], m[9]],
+    })
 }
 
 /// `m` in `setting`, with `add` the components to join (if any).
@@ -299,22 +368,7 @@ fn choose_settings(
         pb.inc(1);
     }
     pb.finish_and_clear();
-    let mut out = Vec::new();
-    for (m, mut cs) in base.iter().zip(cands) {
-        let has_add = added.iter().any(|a| a.meta.name == m.meta.name);
-        let setting = pick_setting(
-            &mut cs,
-            m.meta.detection.colour_weight,
-            has_add,
-            args.single_tolerance,
-            args.min_gain,
-        );
-        out.push(Choice {
-            name: m.meta.name.clone(),
-            setting,
-            candidates: cs,
-        });
-    }
+    let mut out = pick_all(args, base, added, cands);
     // Higher thresholds for the joined models (fewer locations reach the
     // min-cuts, fewer masks), each object's chosen setting at each.
     let mut thresholds: Vec<f64> = args
@@ -387,26 +441,108 @@ fn choose_settings(
     Ok(out)
 }
 
+/// Each object's choice among its scored candidates, as `--guard-scope`
+/// says.
+fn pick_all(
+    args: &JoinSettings,
+    base: &[Model],
+    added: &[Model],
+    cands: Vec<Vec<Candidate>>,
+) -> Vec<Choice> {
+    let has_add = |m: &Model| added.iter().any(|a| a.meta.name == m.meta.name);
+    match args.guard_scope {
+        GuardScope::Object => base
+            .iter()
+            .zip(cands)
+            .map(|(m, mut cs)| {
+                let own = m.meta.detection.colour_weight;
+                let setting = pick_setting(
+                    &mut cs,
+                    own,
+                    has_add(m),
+                    args.single_tolerance,
+                    args.min_gain,
+                );
+                Choice {
+                    name: m.meta.name.clone(),
+                    setting,
+                    plain: plain_of(&cs, own),
+                    candidates: cs,
+                }
+            })
+            .collect(),
+        GuardScope::Set => {
+            let mut objects: Vec<(Vec<Candidate>, Option<usize>, bool)> = base
+                .iter()
+                .zip(cands)
+                .map(|(m, mut cs)| {
+                    set_held_out(&mut cs);
+                    let plain = plain_of(&cs, m.meta.detection.colour_weight);
+                    (cs, plain, has_add(m))
+                })
+                .collect();
+            let picks = join_set::pick_set(&mut objects, args.single_tolerance, args.min_gain);
+            base.iter()
+                .zip(objects)
+                .zip(picks)
+                .map(|((m, (cs, plain, _)), p)| Choice {
+                    name: m.meta.name.clone(),
+                    setting: p.map(|i| cs[i].setting),
+                    candidates: cs,
+                    plain,
+                })
+                .collect()
+        }
+    }
+}
+
+/// Each candidate's `held_out`: the mean over folds of (AUC + cross) / 2.
+fn set_held_out(cs: &mut [Candidate]) {
+    for c in cs.iter_mut() {
+        c.held_out =
+            c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>() / c.folds.len().max(1) as f64;
+    }
+}
+
+/// The index of the base model as it is: not joined, its own colour
+/// weight `own`.
+fn plain_of(cs: &[Candidate], own: f64) -> Option<usize> {
+    cs.iter()
+        .position(|c| c.setting.offset.is_none() && c.setting.colour_weight == own)
+}
+
 /// Each joined object's highest threshold whose held-out figure stays
 /// within `--threshold-tolerance` of its chosen setting's and whose
-/// single-pose figures pass the guard; `extra` holds each object's
-/// candidates at the higher thresholds, in increasing order.
+/// single-pose figures pass the guard (of `--guard-scope`); `extra` holds
+/// each object's candidates at the higher thresholds, in increasing order.
 fn settle_thresholds(
     out: &mut [Choice],
     extra: Vec<Vec<Candidate>>,
     base: &[Model],
     args: &JoinSettings,
 ) {
-    for (c, more) in out.iter_mut().zip(extra) {
-        let own = base
-            .iter()
-            .find(|m| m.meta.name == c.name)
-            .map_or(0.0, |m| m.meta.detection.colour_weight);
-        let plain = c
+    let plains: Vec<Option<[f64; 4]>> = out
+        .iter()
+        .zip(base)
+        .map(|(c, m)| {
+            plain_of(&c.candidates, m.meta.detection.colour_weight)
+                .and_then(|i| c.candidates[i].single)
+        })
+        .collect();
+    let single_of = |c: &Choice, plain: Option<[f64; 4]>| match c.setting {
+        Some(s) => c
             .candidates
             .iter()
-            .find(|x| x.setting.offset.is_none() && x.setting.colour_weight == own)
-            .and_then(|x| x.single);
+            .find(|x| x.setting == s)
+            .and_then(|x| x.single),
+        None => plain,
+    };
+    let mut chosen: Vec<Option<[f64; 4]>> = out
+        .iter()
+        .zip(&plains)
+        .map(|(c, p)| single_of(c, *p))
+        .collect();
+    for (k, (c, more)) in out.iter_mut().zip(extra).enumerate() {
         let Some(best) = c
             .setting
             .and_then(|s| c.candidates.iter().find(|x| x.setting == s))
@@ -417,14 +553,20 @@ fn settle_thresholds(
         let mut more = more;
         for x in &mut more {
             x.admissible = x.held_out >= floor
-                && match (x.single, plain) {
-                    (Some(s), Some(p)) => single_within(&s, &p, args.single_tolerance),
+                && match (x.single, plains[k]) {
+                    (Some(s), Some(p)) => match args.guard_scope {
+                        GuardScope::Object => single_within(&s, &p, args.single_tolerance),
+                        GuardScope::Set => {
+                            join_set::set_allows(&chosen, &plains, k, s, args.single_tolerance)
+                        }
+                    },
                     _ => true,
                 };
         }
         // The highest admissible threshold (they come in increasing order).
         if let Some(x) = more.iter().rev().find(|x| x.admissible) {
             c.setting = Some(x.setting);
+            chosen[k] = x.single;
         }
         c.candidates.extend(more);
     }
@@ -450,14 +592,8 @@ fn pick_setting(
     tol: f64,
     min_gain: f64,
 ) -> Option<Setting> {
-    for c in cs.iter_mut() {
-        c.held_out =
-            c.folds.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>() / c.folds.len().max(1) as f64;
-    }
-    let plain = cs
-        .iter()
-        .find(|c| c.setting.offset.is_none() && c.setting.colour_weight == own)
-        .cloned();
+    set_held_out(cs);
+    let plain = plain_of(cs, own).map(|i| cs[i].clone());
     for c in cs.iter_mut() {
         let guard = match (c.single, plain.as_ref().and_then(|p| p.single)) {
             (Some(s), Some(p)) => single_within(&s, &p, tol),
@@ -546,17 +682,9 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
                 threshold: None,
             }),
         };
-        let out = match setting.filter(|_| chosen) {
+        let (mut j, line) = match setting.filter(|_| chosen) {
             Some(setting) => {
-                let mut j = apply(m, other, setting)?;
-                if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
-                    if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
-                        p.insert(
-                            "join_check".into(),
-                            serde_json::to_value(&ch.candidates).map_err(RouteError::io)?,
-                        );
-                    }
-                }
+                let j = apply(m, other, setting)?;
                 let joined = match (setting.offset, other) {
                     (Some(o), Some(a)) => format!(
                         "+ {} component(s) at offset {o:+.3}, threshold {}",
@@ -574,13 +702,30 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
             }
             None => (m.clone(), format!("{name}: unchanged")),
         };
+        // The check's figures go with every model it judged, joined or not.
+        if let (Some(c), Some(p)) = (&choice, j.meta.provenance.as_object_mut()) {
+            if let Some(ch) = c.iter().find(|ch| &ch.name == name) {
+                p.insert(
+                    "join_check".into(),
+                    serde_json::to_value(&ch.candidates).map_err(RouteError::io)?,
+                );
+            }
+            if let Some(f) = set_figures(c, args.guard_scope) {
+                p.insert(
+                    "join_set".into(),
+                    serde_json::to_value(&f).map_err(RouteError::io)?,
+                );
+            }
+        }
+        let out = (j, line);
         models.push(out);
     }
     Ok(Joined { models, choice })
 }
 
-/// The table of `--check-folds`' figures, a line each.
-pub fn choice_table(choice: &[Choice]) -> Vec<String> {
+/// The table of `--check-folds`' figures, a line each, then the set's
+/// figures under the choice and unjoined.
+pub fn choice_table(choice: &[Choice], scope: GuardScope) -> Vec<String> {
     let mut lines = vec![format!(
         "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
     )];
@@ -613,6 +758,18 @@ pub fn choice_table(choice: &[Choice]) -> Vec<String> {
                 if c.admissible { "yes" } else { "no" },
             ));
         }
+    }
+    if let Some(f) = set_figures(choice, scope) {
+        let single = |s: [f64; 4]| format!("{:.4}/{:.4}/{:.4}/{:.4}", s[0], s[1], s[2], s[3]);
+        lines.push(format!(
+            "set ({} guard), mean over objects: any side held out {:.4} (unjoined {:.4}); \
+             single pose AUC/cross/seg/VOC {} (unjoined {})",
+            f.guard_scope,
+            f.any_side,
+            f.unjoined_any_side,
+            single(f.single),
+            single(f.unjoined_single)
+        ));
     }
     lines
 }
@@ -679,6 +836,47 @@ mod tests {
         );
         // A gain below the least one keeps the base model.
         assert_eq!(pick_setting(&mut cs, 0.0, false, 0.002, 0.1), None);
+    }
+
+    #[test]
+    fn the_sets_figures_are_the_means_of_each_objects_choice() {
+        let mut a = vec![
+            cand(None, 0.0, &[(0.5, 0.5)], [0.9, 0.9, 0.3, 0.2]),
+            cand(Some(0.0), 0.0, &[(0.9, 0.9)], [0.8, 0.8, 0.4, 0.3]),
+        ];
+        let mut b = vec![cand(None, 0.0, &[(0.7, 0.7)], [1.0, 1.0, 0.1, 0.0])];
+        set_held_out(&mut a);
+        set_held_out(&mut b);
+        let choice = vec![
+            Choice {
+                name: "a".into(),
+                setting: Some(a[1].setting),
+                candidates: a,
+                plain: Some(0),
+            },
+            Choice {
+                name: "b".into(),
+                setting: None,
+                candidates: b,
+                plain: Some(0),
+            },
+        ];
+        let f = set_figures(&choice, GuardScope::Set).unwrap();
+        assert!((f.any_side - 0.8).abs() < 1e-12);
+        assert!((f.unjoined_any_side - 0.6).abs() < 1e-12);
+        let want = [0.9, 0.9, 0.25, 0.15];
+        assert!(f
+            .single
+            .iter()
+            .zip(want)
+            .all(|(x, y)| (x - y).abs() < 1e-12));
+        let want = [0.95, 0.95, 0.2, 0.1];
+        assert!(f
+            .unjoined_single
+            .iter()
+            .zip(want)
+            .all(|(x, y)| (x - y).abs() < 1e-12));
+        assert_eq!(choice_table(&choice, GuardScope::Set).len(), 1 + 3 + 1);
     }
 
     #[test]

@@ -16,6 +16,7 @@ pub mod coco;
 pub mod cv;
 pub mod join;
 pub mod join_guard;
+mod join_set;
 pub mod ko8;
 pub mod mesh;
 pub mod mesh_photos;

@@ -1,0 +1,284 @@
+//! The join's choice for the set of shipped models (`sdhop-train join
+//! --guard-scope set`): each object's setting chosen so that the models
+//! together find the objects from any side best (the mean held-out figure
+//! of the box folds), while the set's single-pose figures (the means over
+//! objects of AUC, cross-object AUC, refined segmentation and VOC errors
+//! on the guard's held-out photographs) stay no worse than those of the
+//! set left unjoined. One object may give up a little single-pose accuracy
+//! where another gains it, as the acceptance figures are the set's means;
+//! `--guard-scope object` asks that of every object alone.
+//!
+//! Each object's figures depend on its own model only (its detections are
+//! scored against every photograph), so the set's figures are sums over
+//! objects and the choice is an exact search: branch and bound over each
+//! object's candidates, the bounds being the best held-out figure and the
+//! best single-pose figures the objects not yet chosen could add.
+
+use super::join::Candidate;
+
+/// The four single-pose figures, oriented so that larger is better.
+fn gains(s: &[f64; 4]) -> [f64; 4] {
+    [s[0], s[1], -s[2], -s[3]]
+}
+
+/// Each object's index into its candidates (`None`: keep the base model),
+/// maximising the set's held-out figure with the set's single-pose figures
+/// within `tol` (per object, summed) of the unjoined set's. A candidate
+/// other than the plain one must gain `min_gain` held out over it and,
+/// joined, have components to join; an object without plain single-pose
+/// figures keeps its base model. Marks each candidate's `admissible`.
+pub(super) fn pick_set(
+    objects: &mut [(Vec<Candidate>, Option<usize>, bool)],
+    tol: f64,
+    min_gain: f64,
+) -> Vec<Option<usize>> {
+    // Per object: (candidate index or None for plain, held_out, gains).
+    let mut opts: Vec<Vec<(Option<usize>, f64, [f64; 4])>> = Vec::new();
+    let mut floor = [0.0; 4];
+    for (cs, plain, has_add) in objects.iter_mut() {
+        let base = plain.and_then(|p| cs[p].single.map(|s| (cs[p].held_out, gains(&s))));
+        let Some((held0, g0)) = base else {
+            cs.iter_mut().for_each(|c| c.admissible = false);
+            opts.push(vec![(None, 0.0, [0.0; 4])]);
+            continue;
+        };
+        for (f, g) in floor.iter_mut().zip(g0) {
+            *f += g - tol;
+        }
+        let mut o = vec![(None, held0, g0)];
+        for (i, c) in cs.iter_mut().enumerate() {
+            c.admissible = Some(i) == *plain
+                || (c.single.is_some()
+                    && (c.setting.offset.is_none() || *has_add)
+                    && c.held_out >= held0 + min_gain);
+            if let (true, Some(s), false) = (c.admissible, c.single, Some(i) == *plain) {
+                o.push((Some(i), c.held_out, gains(&s)));
+            }
+        }
+        opts.push(pareto(o));
+    }
+    let n = opts.len();
+    // Bounds of what objects k.. can add: best held-out, best per figure.
+    let mut rest = vec![(0.0, [0.0; 4]); n + 1];
+    for k in (0..n).rev() {
+        let (h, g) = rest[k + 1];
+        let best_h = opts[k]
+            .iter()
+            .map(|o| o.1)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let mut best_g = [f64::NEG_INFINITY; 4];
+        for o in &opts[k] {
+            for (b, x) in best_g.iter_mut().zip(o.2) {
+                *b = b.max(x);
+            }
+        }
+        rest[k] = (h + best_h, std::array::from_fn(|j| g[j] + best_g[j]));
+    }
+    let mut search = Search {
+        opts: &opts,
+        rest: &rest,
+        floor,
+        path: vec![0; n],
+        best: None,
+    };
+    search.dfs(0, 0.0, [0.0; 4]);
+    let picks = search.best.map_or_else(|| vec![0; n], |(_, p)| p);
+    picks.iter().zip(&opts).map(|(&i, o)| o[i].0).collect()
+}
+
+/// `o` without the options another is at least as good as in every
+/// figure (the first of equals kept; the plain one first).
+fn pareto(o: Vec<(Option<usize>, f64, [f64; 4])>) -> Vec<(Option<usize>, f64, [f64; 4])> {
+    let at_least = |a: &(Option<usize>, f64, [f64; 4]), b: &(Option<usize>, f64, [f64; 4])| {
+        a.1 >= b.1 && a.2.iter().zip(b.2).all(|(x, y)| *x >= y)
+    };
+    let mut keep: Vec<(Option<usize>, f64, [f64; 4])> = Vec::new();
+    for (i, x) in o.iter().enumerate() {
+        let dominated = o
+            .iter()
+            .enumerate()
+            .any(|(j, y)| j != i && at_least(y, x) && (!at_least(x, y) || j < i));
+        if !dominated {
+            keep.push(*x);
+        }
+    }
+    keep
+}
+
+struct Search<'a> {
+    opts: &'a [Vec<(Option<usize>, f64, [f64; 4])>],
+    rest: &'a [(f64, [f64; 4])],
+    floor: [f64; 4],
+    path: Vec<usize>,
+    best: Option<(f64, Vec<usize>)>,
+}
+
+impl Search<'_> {
+    fn dfs(&mut self, k: usize, held: f64, g: [f64; 4]) {
+        let (h_rest, g_rest) = self.rest[k];
+        if let Some((b, _)) = &self.best {
+            if held + h_rest <= *b + 1e-12 {
+                return;
+            }
+        }
+        if (0..4).any(|j| g[j] + g_rest[j] < self.floor[j] - 1e-12) {
+            return;
+        }
+        if k == self.opts.len() {
+            self.best = Some((held, self.path.clone()));
+            return;
+        }
+        for i in 0..self.opts[k].len() {
+            let (_, h, x) = self.opts[k][i];
+            self.path[k] = i;
+            self.dfs(k + 1, held + h, std::array::from_fn(|j| g[j] + x[j]));
+        }
+    }
+}
+
+/// Whether object `k` may move to `single` with the others as `chosen`
+/// (each object's single-pose figures in the set) and `plain` (the
+/// unjoined set's): the set's sums stay within `tol` per object.
+pub(super) fn set_allows(
+    chosen: &[Option<[f64; 4]>],
+    plain: &[Option<[f64; 4]>],
+    k: usize,
+    single: [f64; 4],
+    tol: f64,
+) -> bool {
+    let mut sum = [0.0; 4];
+    let mut floor = [0.0; 4];
+    for (i, (c, p)) in chosen.iter().zip(plain).enumerate() {
+        let (Some(c), Some(p)) = (if i == k { Some(single) } else { *c }, p) else {
+            continue;
+        };
+        let (gc, gp) = (gains(&c), gains(p));
+        for j in 0..4 {
+            sum[j] += gc[j];
+            floor[j] += gp[j] - tol;
+        }
+    }
+    (0..4).all(|j| sum[j] >= floor[j] - 1e-12)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::train::routes::join::Setting;
+
+    fn cand(offset: Option<f64>, held_out: f64, single: [f64; 4]) -> Candidate {
+        Candidate {
+            setting: Setting {
+                offset,
+                colour_weight: 0.0,
+                threshold: None,
+            },
+            folds: Vec::new(),
+            held_out,
+            single: Some(single),
+            admissible: false,
+        }
+    }
+
+    #[test]
+    fn one_object_may_lose_what_another_gains() {
+        // Object a: joining gains 0.3 from any side, loses 0.01 AUC.
+        let a = vec![
+            cand(None, 0.5, [0.98, 0.98, 0.25, 0.12]),
+            cand(Some(0.5), 0.8, [0.97, 0.97, 0.25, 0.12]),
+        ];
+        // Object b: joining gains a little and 0.02 single-pose AUC.
+        let b = vec![
+            cand(None, 0.9, [0.95, 0.95, 0.25, 0.12]),
+            cand(Some(0.0), 0.92, [0.97, 0.97, 0.25, 0.12]),
+        ];
+        let mut objects = vec![(a.clone(), Some(0), true), (b.clone(), Some(0), true)];
+        let picks = pick_set(&mut objects, 0.0, 0.01);
+        assert_eq!(picks, vec![Some(1), Some(1)]);
+        // Alone, b cannot pay for a: a stays plain.
+        let mut objects = vec![(a.clone(), Some(0), true), (b[..1].to_vec(), Some(0), true)];
+        assert_eq!(pick_set(&mut objects, 0.0, 0.01), vec![None, None]);
+        // With a tolerance that covers a's loss, a joins alone.
+        let mut objects = vec![(a, Some(0), true), (b[..1].to_vec(), Some(0), true)];
+        assert_eq!(pick_set(&mut objects, 0.006, 0.01), vec![Some(1), None]);
+    }
+
+    /// Three objects, four candidates each, random figures around the
+    /// plain one's.
+    fn random_objects(seed: u64) -> Vec<(Vec<Candidate>, Option<usize>, bool)> {
+        let mut seed = seed;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as f64 / (1u64 << 31) as f64
+        };
+        (0..3)
+            .map(|_| {
+                let mut cs = vec![cand(None, 0.5, PLAIN)];
+                for _ in 0..3 {
+                    let s: [f64; 4] = std::array::from_fn(|j| PLAIN[j] + 0.02 * (next() - 0.35));
+                    cs.push(cand(Some(0.0), 0.45 + 0.4 * next(), s));
+                }
+                (cs, Some(0), true)
+            })
+            .collect()
+    }
+
+    const PLAIN: [f64; 4] = [0.95, 0.95, 0.25, 0.12];
+
+    /// The best feasible set by trying all 64.
+    fn brute_force(objects: &[(Vec<Candidate>, Option<usize>, bool)]) -> Vec<usize> {
+        let fig = |o: usize, i: usize| (objects[o].0[i].held_out, objects[o].0[i].single.unwrap());
+        let mut best = (f64::NEG_INFINITY, vec![]);
+        for i in 0..64 {
+            let pick = [i % 4, (i / 4) % 4, i / 16];
+            let sets: Vec<_> = (0..3).map(|o| fig(o, pick[o])).collect();
+            // Below the least gain over the plain one: inadmissible.
+            if sets.iter().zip(pick).any(|(x, c)| c > 0 && x.0 < 0.51) {
+                continue;
+            }
+            let ok = (0..4).all(|q| {
+                let s: f64 = sets.iter().map(|x| gains(&x.1)[q]).sum();
+                s >= 3.0 * gains(&PLAIN)[q] - 1e-12
+            });
+            let h: f64 = sets.iter().map(|x| x.0).sum();
+            if ok && h > best.0 + 1e-12 {
+                best = (h, pick.to_vec());
+            }
+        }
+        best.1
+    }
+
+    #[test]
+    fn the_search_finds_the_best_feasible_set_among_all() {
+        let mut joined = 0;
+        for seed in 0..40 {
+            let mut objects = random_objects(seed);
+            let want = brute_force(&objects);
+            let got: Vec<usize> = pick_set(&mut objects, 0.0, 0.01)
+                .iter()
+                .map(|p| p.unwrap_or(0))
+                .collect();
+            assert_eq!(got, want, "seed {seed}");
+            joined += got.iter().filter(|&&i| i > 0).count();
+        }
+        // The draws are not all left plain.
+        assert!(joined > 20, "{joined}");
+    }
+
+    #[test]
+    fn the_set_allows_a_move_only_within_the_unjoined_sets_figures() {
+        let plain = vec![Some([0.9, 0.9, 0.2, 0.1]), Some([0.9, 0.9, 0.2, 0.1])];
+        let chosen = vec![Some([0.92, 0.92, 0.19, 0.09]), Some([0.9, 0.9, 0.2, 0.1])];
+        assert!(set_allows(
+            &chosen,
+            &plain,
+            1,
+            [0.89, 0.89, 0.21, 0.11],
+            0.0
+        ));
+        assert!(!set_allows(&chosen, &plain, 1, [0.87, 0.9, 0.2, 0.1], 0.0));
+        assert!(set_allows(&chosen, &plain, 1, [0.87, 0.9, 0.2, 0.1], 0.005));
+    }
+}
