@@ -382,6 +382,34 @@ impl Model {
         Ok(())
     }
 
+    /// Sets the pixel refinement to this build's for the model's cells
+    /// ([`crate::vision::refine::RefineParams::for_cells`]): the refinement
+    /// follows detection and trains nothing, so a model made before its
+    /// weights were chosen again can take them (`sdhop-train upgrade
+    /// --refine`). The change is recorded in the provenance under
+    /// `refine_set`; returns whether anything changed.
+    pub fn refresh_refinement(&mut self) -> bool {
+        let want = crate::vision::refine::RefineParams::for_cells(self.meta.pyramid.features);
+        let old = self.meta.detection.refine;
+        if old == want {
+            return false;
+        }
+        self.meta.detection.refine = want;
+        if !self.meta.provenance.is_object() {
+            self.meta.provenance = serde_json::json!({});
+        }
+        if let Some(p) = self.meta.provenance.as_object_mut() {
+            let entry = serde_json::json!({ "from": old, "to": want });
+            match p.get_mut("refine_set").and_then(|v| v.as_array_mut()) {
+                Some(list) => list.push(entry),
+                None => {
+                    p.insert("refine_set".into(), serde_json::json!([entry]));
+                }
+            }
+        }
+        true
+    }
+
     /// This model with `other`'s components appended, each of their scores
     /// moved by `offset` (taken from their bias): a single-pose model joined
     /// with view components trained apart, their scores calibrated against

@@ -385,3 +385,24 @@ fn files_that_were_changed_after_training_are_refused() {
         Err(ModelError::Legacy { found: 2 })
     ));
 }
+
+#[test]
+fn a_models_refinement_is_set_to_this_builds_and_the_old_kept() {
+    use crate::vision::refine::RefineParams;
+    let mut m = sample();
+    let mut old = RefineParams::for_cells(m.meta.pyramid.features);
+    old.pixel.smoothness += 1.0;
+    m.meta.detection.refine = old;
+    assert!(m.refresh_refinement());
+    assert_eq!(
+        m.meta.detection.refine,
+        RefineParams::for_cells(m.meta.pyramid.features)
+    );
+    let kept = &m.meta.provenance["refine_set"][0]["from"]["pixel"]["smoothness"];
+    assert_eq!(kept.as_f64(), Some(old.pixel.smoothness));
+    // Already this build's: nothing changes, nothing is added.
+    assert!(!m.refresh_refinement());
+    assert_eq!(m.meta.provenance["refine_set"].as_array().unwrap().len(), 1);
+    // It round-trips through its file.
+    assert_eq!(Model::from_bytes(&m.to_bytes().unwrap()).unwrap(), m);
+}
