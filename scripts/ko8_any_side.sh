@@ -6,7 +6,10 @@
 # component's scores) the folds chose; held-out single-pose photographs
 # guard the choice (sdhop-train join --check-folds --guard-folds: each
 # fold of a single-pose cross-validation scored with that fold's models,
-# so no photograph that trained what it judges is scored).
+# so no photograph that trained what it judges is scored). The choice is
+# the set's (join --guard-scope set, the default): the settings that find
+# the objects best from any side together, the set's single-pose means no
+# worse than the unjoined set's.
 #
 #   scripts/ko8_any_side.sh OUT [train flags...]
 #   BASE=models scripts/ko8_any_side.sh out/any-side     # -> out/any-side/models
