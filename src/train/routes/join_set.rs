@@ -16,6 +16,10 @@
 
 use super::join::Candidate;
 
+/// One option of an object in the search: its candidate (`None`: the
+/// plain model), its held-out figure and its single-pose [`gains`].
+type Opt = (Option<usize>, f64, [f64; 4]);
+
 /// The four single-pose figures, oriented so that larger is better.
 fn gains(s: &[f64; 4]) -> [f64; 4] {
     [s[0], s[1], -s[2], -s[3]]
@@ -33,7 +37,7 @@ pub(super) fn pick_set(
     min_gain: f64,
 ) -> Vec<Option<usize>> {
     // Per object: (candidate index or None for plain, held_out, gains).
-    let mut opts: Vec<Vec<(Option<usize>, f64, [f64; 4])>> = Vec::new();
+    let mut opts: Vec<Vec<Opt>> = Vec::new();
     let mut floor = [0.0; 4];
     for (cs, plain, has_add) in objects.iter_mut() {
         let base = plain.and_then(|p| cs[p].single.map(|s| (cs[p].held_out, gains(&s))));
@@ -88,11 +92,9 @@ pub(super) fn pick_set(
 
 /// `o` without the options another is at least as good as in every
 /// figure (the first of equals kept; the plain one first).
-fn pareto(o: Vec<(Option<usize>, f64, [f64; 4])>) -> Vec<(Option<usize>, f64, [f64; 4])> {
-    let at_least = |a: &(Option<usize>, f64, [f64; 4]), b: &(Option<usize>, f64, [f64; 4])| {
-        a.1 >= b.1 && a.2.iter().zip(b.2).all(|(x, y)| *x >= y)
-    };
-    let mut keep: Vec<(Option<usize>, f64, [f64; 4])> = Vec::new();
+fn pareto(o: Vec<Opt>) -> Vec<Opt> {
+    let at_least = |a: &Opt, b: &Opt| a.1 >= b.1 && a.2.iter().zip(b.2).all(|(x, y)| *x >= y);
+    let mut keep: Vec<Opt> = Vec::new();
     for (i, x) in o.iter().enumerate() {
         let dominated = o
             .iter()
@@ -106,7 +108,7 @@ fn pareto(o: Vec<(Option<usize>, f64, [f64; 4])>) -> Vec<(Option<usize>, f64, [f
 }
 
 struct Search<'a> {
-    opts: &'a [Vec<(Option<usize>, f64, [f64; 4])>],
+    opts: &'a [Vec<Opt>],
     rest: &'a [(f64, [f64; 4])],
     floor: [f64; 4],
     path: Vec<usize>,
