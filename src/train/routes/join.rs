@@ -46,8 +46,8 @@ pub struct JoinSettings {
 /// What `--check-folds`' single-pose guard holds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum GuardScope {
-    /// The set's means over objects no worse than the unjoined set's
-    /// ([`super::join_set`]): the figures the acceptance measures.
+    /// The set's means over objects no worse than the unjoined set's:
+    /// the figures the acceptance measures (the search: `join_set`).
     #[default]
     Set,
     /// Each object's figures no worse than its unjoined model's.
