@@ -437,7 +437,7 @@ fn choose_settings(
         }
     }
     pb.finish_and_clear();
-    settle_thresholds(&mut out, extra, base, args);
+    settle_thresholds(&mut out, extra, args);
     Ok(out)
 }
 
@@ -515,19 +515,10 @@ fn plain_of(cs: &[Candidate], own: f64) -> Option<usize> {
 /// within `--threshold-tolerance` of its chosen setting's and whose
 /// single-pose figures pass the guard (of `--guard-scope`); `extra` holds
 /// each object's candidates at the higher thresholds, in increasing order.
-fn settle_thresholds(
-    out: &mut [Choice],
-    extra: Vec<Vec<Candidate>>,
-    base: &[Model],
-    args: &JoinSettings,
-) {
+fn settle_thresholds(out: &mut [Choice], extra: Vec<Vec<Candidate>>, args: &JoinSettings) {
     let plains: Vec<Option<[f64; 4]>> = out
         .iter()
-        .zip(base)
-        .map(|(c, m)| {
-            plain_of(&c.candidates, m.meta.detection.colour_weight)
-                .and_then(|i| c.candidates[i].single)
-        })
+        .map(|c| c.plain.and_then(|i| c.candidates[i].single))
         .collect();
     let single_of = |c: &Choice, plain: Option<[f64; 4]>| match c.setting {
         Some(s) => c
@@ -666,6 +657,14 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
         let c = choose_settings(args, &base, &added)?;
         Some(c)
     };
+    // The set's figures, the same in every model's provenance.
+    let set_json = match choice
+        .as_ref()
+        .and_then(|c| set_figures(c, args.guard_scope))
+    {
+        Some(f) => Some(serde_json::to_value(&f).map_err(RouteError::io)?),
+        None => None,
+    };
     let mut models = Vec::new();
     for m in &base {
         let name = &m.meta.name;
@@ -710,11 +709,8 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
                     serde_json::to_value(&ch.candidates).map_err(RouteError::io)?,
                 );
             }
-            if let Some(f) = set_figures(c, args.guard_scope) {
-                p.insert(
-                    "join_set".into(),
-                    serde_json::to_value(&f).map_err(RouteError::io)?,
-                );
+            if let Some(f) = &set_json {
+                p.insert("join_set".into(), f.clone());
             }
         }
         let out = (j, line);
