@@ -89,7 +89,12 @@ impl DetectQuery {
             }
             match k.as_ref() {
                 "model" => {
-                    for name in v.split(',').map(str::trim) {
+                    // ASCII white space only, the class openapi.yaml's
+                    // pattern names: a name of other spaces is a name.
+                    for name in v
+                        .split(',')
+                        .map(|n| n.trim_matches(|c: char| c.is_ascii_whitespace()))
+                    {
                         if name.is_empty() {
                             return Err(bad(&k, &v, "empty model name"));
                         }
