@@ -7,6 +7,7 @@ pub mod cnn;
 pub mod deadline;
 pub mod detect;
 pub mod energy;
+pub mod gridflow;
 pub mod hog;
 pub mod image;
 pub mod mask;

@@ -16,9 +16,9 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::gridflow::GridGraph;
 use super::image::ColorImage;
 use super::mask::{CellGrid, Mask};
-use super::maxflow::Graph;
 use super::segment::Segmentation;
 use super::shape::{colour_bin, ShapeModel, COLOUR_BINS};
 use super::VisionError;
@@ -261,7 +261,7 @@ struct Cut<'a> {
     /// The smoothness capacities to the right and lower neighbour of each
     /// range pixel (the same for every cut of the detection: made once).
     pair_caps: Vec<[f64; 2]>,
-    graph: Graph,
+    graph: GridGraph,
 }
 
 impl<'a> Cut<'a> {
@@ -324,7 +324,7 @@ impl<'a> Cut<'a> {
             beta,
             ring_hist,
             pair_caps: Vec::new(),
-            graph: Graph::new(),
+            graph: GridGraph::new(),
         }
     }
 
@@ -360,7 +360,6 @@ impl<'a> Cut<'a> {
         let img = self.img;
         let (x0, y0, x1, y1) = self.range;
         let (bw, bh) = (x1 - x0, y1 - y0);
-        let n = bw * bh;
         let mut out = Mask::new(self.raw.width, self.raw.height);
         // Colour log-likelihood ratios: at first the object's colours from
         // the pixels the prior is surest of (shape at least a half on
@@ -433,8 +432,7 @@ impl<'a> Cut<'a> {
             }
             let inner = self.inner;
             let g = &mut self.graph;
-            g.reset();
-            g.add_nodes(n);
+            g.reset(bw, bh);
             for y in y0..y1 {
                 for x in x0..x1 {
                     let i = (y - y0) * bw + (x - x0);
@@ -458,12 +456,8 @@ impl<'a> Cut<'a> {
                     g.add_tweights(i, l.max(0.0), (-l).max(0.0));
                     if params.smoothness > 0.0 {
                         let [right, down] = self.pair_caps[i];
-                        if x + 1 < x1 {
-                            g.add_edge(i, i + 1, right, right);
-                        }
-                        if y + 1 < y1 {
-                            g.add_edge(i, i + bw, down, down);
-                        }
+                        g.add_right(i, right, right);
+                        g.add_down(i, down, down);
                     }
                 }
             }
