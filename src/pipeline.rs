@@ -3,6 +3,7 @@
 //! scan, masks, timings, and a PNG overlay for inspection.
 
 use rayon::prelude::*;
+use std::sync::OnceLock;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -293,6 +294,9 @@ pub fn detect_prebuilt_with(
         })
         .collect();
     timing.responses += t.elapsed().as_secs_f64() * 1e3;
+    // The image's colours, made once per pyramid for the models that weigh
+    // colours.
+    let colours: Vec<OnceLock<Vec<f32>>> = pyramids.iter().map(|_| OnceLock::new()).collect();
     for (mi, model) in models.iter().enumerate() {
         let idx = of_model[mi];
         let pyr = pyramids[idx];
@@ -316,6 +320,7 @@ pub fn detect_prebuilt_with(
             shared[idx].as_ref(),
             opts,
             transfers[idx].as_mut(),
+            &colours[idx],
             &mut timing,
             &mut stats,
         )?);
@@ -344,7 +349,7 @@ struct Scanned<'a> {
     params: DetectParams,
     dets: Vec<Detection>,
     /// The image's colours, for the colour agreement of models that use it.
-    image_colours: Option<Vec<f32>>,
+    image_colours: Option<&'a [f32]>,
 }
 
 /// One model's scan; with a `transfer`, the scan sees the cells earlier
@@ -359,6 +364,7 @@ fn scan_model<'a>(
     maps: Option<&PlanarMaps>,
     opts: &DetectOptions,
     transfer: Option<&mut Transfer>,
+    colours: &'a OnceLock<Vec<f32>>,
     timing: &mut Timing,
     stats: &mut DetectStats,
 ) -> Result<Scanned<'a>, VisionError> {
@@ -428,7 +434,8 @@ fn scan_model<'a>(
     stats.min_cuts += s.min_cuts;
     timing.responses += s.responses_ms;
     timing.mincut += s.mincut_ms;
-    let image_colours = (params.colour_weight > 0.0).then(|| image_colours(&pyr.image));
+    let image_colours = (params.colour_weight > 0.0)
+        .then(|| colours.get_or_init(|| image_colours(&pyr.image)).as_slice());
     Ok(Scanned {
         pyr,
         model,

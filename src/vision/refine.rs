@@ -27,6 +27,9 @@ use super::VisionError;
 /// before its logit.
 const SHAPE_FLOOR: f64 = 0.05;
 
+// A colour bin fits the `u16` of [`Cut::bins`].
+const _: () = assert!(COLOUR_BINS * COLOUR_BINS * COLOUR_BINS <= 1 << 16);
+
 /// The colour term's log-likelihood ratio is clamped to this either way.
 pub const COLOUR_CLAMP: f64 = 3.0;
 
@@ -261,6 +264,8 @@ struct Cut<'a> {
     /// The smoothness capacities to the right and lower neighbour of each
     /// range pixel (the same for every cut of the detection: made once).
     pair_caps: Vec<[f64; 2]>,
+    /// The colour bin of each range pixel.
+    bins: Vec<u16>,
     graph: GridGraph,
 }
 
@@ -311,6 +316,9 @@ impl<'a> Cut<'a> {
                 }
             }
         }
+        let bins = (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| colour_bin(img, x, y) as u16))
+            .collect();
         Self {
             raw,
             seg,
@@ -318,6 +326,7 @@ impl<'a> Cut<'a> {
             params,
             range,
             inner,
+            bins,
             s: vec![0.0; bw * bh],
             q: vec![0.0; bw * bh],
             seg_sum: vec![(0.0, 0.0); seg.count()],
@@ -385,10 +394,11 @@ impl<'a> Cut<'a> {
                         } else {
                             (out.get(x, y), !out.get(x, y))
                         };
+                        let b = usize::from(self.bins[i]);
                         if fg {
-                            hf[colour_bin(img, x, y)] += 1.0;
+                            hf[b] += 1.0;
                         } else if bg {
-                            hb[colour_bin(img, x, y)] += 1.0;
+                            hb[b] += 1.0;
                         }
                     }
                 }
@@ -449,7 +459,7 @@ impl<'a> Cut<'a> {
                     let l = params.shape * logit(self.s[i])
                         + params.cells * cell
                         + params.segments * (2.0 * f - 1.0)
-                        + params.colour * ratio[colour_bin(img, x, y)] / COLOUR_CLAMP
+                        + params.colour * ratio[usize::from(self.bins[i])] / COLOUR_CLAMP
                         + params.bias;
                     // Source side is the object: labelling a pixel
                     // background cuts its source capacity.

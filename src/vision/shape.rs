@@ -86,22 +86,27 @@ pub const AGREEMENT_CLAMP: f64 = 3.0;
 pub fn colour_agreement(img: &ColorImage, mask: &Mask, object: &[f32], image: &[f32]) -> f64 {
     let e = 0.5 / object.len().max(1) as f64;
     let (mut sum, mut n) = (0.0, 0usize);
-    if (img.width(), img.height()) != (mask.width, mask.height) {
+    if (img.width(), img.height()) != (mask.width, mask.height) || mask.width == 0 {
         return 0.0;
     }
-    for y in 0..mask.height {
-        for x in 0..mask.width {
-            if mask.get(x, y) {
-                let b = colour_bin(img, x, y);
+    // Each bin's log ratio, made the first time a pixel of the bin is met
+    // (the same value as made for every pixel, summed in the same order).
+    let mut ratio = vec![f64::NAN; COLOUR_BINS * COLOUR_BINS * COLOUR_BINS];
+    for (y, row) in mask.data.chunks_exact(mask.width).enumerate() {
+        for (x, _) in row.iter().enumerate().filter(|(_, v)| **v != 0) {
+            let b = colour_bin(img, x, y);
+            let r = &mut ratio[b];
+            if r.is_nan() {
                 let (o, i) = (
                     object.get(b).copied().unwrap_or(0.0),
                     image.get(b).copied().unwrap_or(0.0),
                 );
-                sum += ((f64::from(o) + e) / (f64::from(i) + e))
+                *r = ((f64::from(o) + e) / (f64::from(i) + e))
                     .ln()
                     .clamp(-AGREEMENT_CLAMP, AGREEMENT_CLAMP);
-                n += 1;
             }
+            sum += *r;
+            n += 1;
         }
     }
     if n == 0 {
