@@ -8,6 +8,8 @@
 
 use std::collections::VecDeque;
 
+use super::maxflow::add_terminal_caps;
+
 /// Directions of a node's arcs; the sister of arc `(i, d)` is
 /// `(neighbour(i, d), opposite(d))`.
 const RIGHT: u8 = 0;
@@ -97,16 +99,7 @@ impl GridGraph {
     /// `cap_source` is paid when `i` ends on the sink side, `cap_sink` when
     /// it ends on the source side.
     pub fn add_tweights(&mut self, i: usize, cap_source: f64, cap_sink: f64) {
-        let node = &mut self.nodes[i];
-        let delta = node.tr_cap;
-        let (mut cs, mut ct) = (cap_source, cap_sink);
-        if delta > 0.0 {
-            cs += delta;
-        } else {
-            ct -= delta;
-        }
-        self.flow += cs.min(ct);
-        node.tr_cap = cs - ct;
+        self.flow += add_terminal_caps(&mut self.nodes[i].tr_cap, cap_source, cap_sink);
     }
 
     /// Adds capacity `cap` to the arc from `i` to its right neighbour and

@@ -9,6 +9,21 @@
 
 use std::collections::VecDeque;
 
+/// Adds terminal capacities to a node's residual terminal capacity
+/// `tr_cap` (> 0 from the source, < 0 to the sink): only their difference
+/// is kept, and the smaller, which every cut pays, is returned as flow.
+pub(crate) fn add_terminal_caps(tr_cap: &mut f64, cap_source: f64, cap_sink: f64) -> f64 {
+    let delta = *tr_cap;
+    let (mut cs, mut ct) = (cap_source, cap_sink);
+    if delta > 0.0 {
+        cs += delta;
+    } else {
+        ct -= delta;
+    }
+    *tr_cap = cs - ct;
+    cs.min(ct)
+}
+
 const NONE: u32 = u32::MAX;
 const TERMINAL: u32 = u32::MAX - 1;
 const ORPHAN: u32 = u32::MAX - 2;
@@ -85,16 +100,7 @@ impl Graph {
     /// sink side, `cap_sink` when it ends on the source side. Either may be
     /// negative.
     pub fn add_tweights(&mut self, i: usize, cap_source: f64, cap_sink: f64) {
-        let node = &mut self.nodes[i];
-        let delta = node.tr_cap;
-        let (mut cs, mut ct) = (cap_source, cap_sink);
-        if delta > 0.0 {
-            cs += delta;
-        } else {
-            ct -= delta;
-        }
-        self.flow += cs.min(ct);
-        node.tr_cap = cs - ct;
+        self.flow += add_terminal_caps(&mut self.nodes[i].tr_cap, cap_source, cap_sink);
     }
 
     /// Adds the arc `i -> j` with capacity `cap` and `j -> i` with `rev_cap`
