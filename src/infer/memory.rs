@@ -15,11 +15,16 @@ pub const LARGE_MESH_TRIANGLES: usize = 100_000;
 /// them back to the system: mimalloc 2's default, 10 ms, hands back the
 /// feature maps of one pyramid level before the next level asks for them
 /// again, and faulting them back in (the kernel zeroing each page) took
-/// 14% of a learned-cell scan; mimalloc 3 made 1,000 ms its default
-/// (a learned scan of one cup photograph on one thread: 406-418 ms at 10,
-/// 360-364 at 1,000). Large requests still hand their pages back at once
-/// ([`release_freed_pages`]).
-pub const FREED_PAGES_KEPT_MS: i64 = 1000;
+/// 14% of a learned-cell scan (one cup photograph, one thread: 406-418 ms
+/// at 10, 360-364 at 1,000). mimalloc purges everything freed once the
+/// delay after a free runs out, so under a steady stream of requests
+/// 1,000 ms still handed the maps back about once a second: eight
+/// learned-cell models on two threads took 313.6 and 315.2 ms a
+/// photograph at 1,000 (1.2-1.7 s of system time for 40 scans), 304.2
+/// and 306.4 at 10,000 (0.5-0.8 s); HOG's 146.9-149.1 either way. An
+/// idle server hands its freed pages back after this long; large
+/// requests still hand theirs back at once ([`release_freed_pages`]).
+pub const FREED_PAGES_KEPT_MS: i64 = 10_000;
 
 /// mimalloc's `mi_option_purge_delay` (its index in `mimalloc.h`'s
 /// `mi_option_t` of version 2, which `libmimalloc-sys` does not name).
