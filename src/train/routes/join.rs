@@ -713,8 +713,7 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
                 p.insert("join_set".into(), f.clone());
             }
         }
-        let out = (j, line);
-        models.push(out);
+        models.push((j, line));
     }
     Ok(Joined { models, choice })
 }
@@ -860,18 +859,15 @@ mod tests {
         let f = set_figures(&choice, GuardScope::Set).unwrap();
         assert!((f.any_side - 0.8).abs() < 1e-12);
         assert!((f.unjoined_any_side - 0.6).abs() < 1e-12);
-        let want = [0.9, 0.9, 0.25, 0.15];
-        assert!(f
-            .single
-            .iter()
-            .zip(want)
-            .all(|(x, y)| (x - y).abs() < 1e-12));
-        let want = [0.95, 0.95, 0.2, 0.1];
-        assert!(f
-            .unjoined_single
-            .iter()
-            .zip(want)
-            .all(|(x, y)| (x - y).abs() < 1e-12));
+        let near = |got: [f64; 4], want: [f64; 4]| {
+            got.iter().zip(want).all(|(x, y)| (x - y).abs() < 1e-12)
+        };
+        assert!(near(f.single, [0.9, 0.9, 0.25, 0.15]), "{:?}", f.single);
+        assert!(
+            near(f.unjoined_single, [0.95, 0.95, 0.2, 0.1]),
+            "{:?}",
+            f.unjoined_single
+        );
         assert_eq!(choice_table(&choice, GuardScope::Set).len(), 1 + 3 + 1);
     }
 
