@@ -21,9 +21,12 @@ pub const LARGE_MESH_TRIANGLES: usize = 100_000;
 /// 1,000 ms still handed the maps back about once a second: eight
 /// learned-cell models on two threads took 313.6 and 315.2 ms a
 /// photograph at 1,000 (1.2-1.7 s of system time for 40 scans), 304.2
-/// and 306.4 at 10,000 (0.5-0.8 s); HOG's 146.9-149.1 either way. An
-/// idle server hands its freed pages back after this long; large
-/// requests still hand theirs back at once ([`release_freed_pages`]).
+/// and 306.4 at 10,000 (0.5-0.8 s); HOG's 146.9-149.1 either way. The
+/// price: mimalloc purges only when it next runs, so after a burst an
+/// idle server holds a little more (eight 4 MP photographs at once:
+/// 27-32 MiB above idle up to 25 s later, against 11-15 at 1,000).
+/// Large requests still hand their pages back at once
+/// ([`release_freed_pages`]).
 pub const FREED_PAGES_KEPT_MS: i64 = 10_000;
 
 /// mimalloc's `mi_option_purge_delay` (its index in `mimalloc.h`'s
