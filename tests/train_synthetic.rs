@@ -761,5 +761,25 @@ fn join_cli_appends_components_and_refuses_bad_input() {
         &["--check-folds", &p(&add), "--ko8", &p(&dir)],
         "--guard-folds",
     );
+    // A choice from recorded figures needs a join's record, and a time
+    // budget below the unjoined set's time is none.
+    refused(
+        &base,
+        &["--recorded", &p(&add), "--ko8", &p(&dir)],
+        "has no join_check",
+    );
+    refused(&base, &["--recorded", &p(&add)], "--ko8");
+    refused(
+        &base,
+        &[
+            "--recorded",
+            &p(&add),
+            "--ko8",
+            &p(&dir),
+            "--max-time-ratio",
+            "0.5",
+        ],
+        "--max-time-ratio",
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -94,6 +94,29 @@ pub(crate) struct JoinArgs {
     /// its unjoined model's.
     #[arg(long, value_enum, default_value_t = GuardScope::Set)]
     pub(crate) guard_scope: GuardScope,
+    /// Choose from the figures an earlier `join --check-folds` wrote into
+    /// its models (this folder's `*.safetensors`, their provenance's
+    /// `join_check`) instead of scoring the folds again: for a choice
+    /// under another `--max-time-ratio`, in minutes instead of an hour.
+    /// `--base` and `--add` must be the models that check joined.
+    #[arg(
+        long,
+        value_name = "DIR",
+        requires = "ko8",
+        conflicts_with = "check_folds"
+    )]
+    pub(crate) recorded: Option<PathBuf>,
+    /// The set's time at most this many times the unjoined set's
+    /// (`--guard-scope set`): each candidate is timed alone on one compute
+    /// thread on `--cost-photos` single-pose photographs, and the set's
+    /// time is estimated as one pyramid's plus its models' each. 0: no
+    /// budget and no timing.
+    #[arg(long, default_value_t = JoinSettings::default().max_time_ratio.unwrap_or(0.0))]
+    pub(crate) max_time_ratio: f64,
+    /// Single-pose photographs (spread over the objects) the candidates
+    /// are timed on.
+    #[arg(long, default_value_t = JoinSettings::default().cost_photos)]
+    pub(crate) cost_photos: usize,
 }
 
 impl JoinArgs {
@@ -121,14 +144,21 @@ impl JoinArgs {
             min_gain: self.min_gain,
             single_tolerance: self.single_tolerance,
             guard_scope: self.guard_scope,
+            recorded: self.recorded.clone(),
+            max_time_ratio: (self.max_time_ratio != 0.0).then_some(self.max_time_ratio),
+            cost_photos: self.cost_photos,
         }
     }
 }
 
 pub(crate) fn run_join(args: &JoinArgs) -> Result<(), Failure> {
-    let Joined { models, choice } = join_models(&args.settings())?;
+    let Joined {
+        models,
+        choice,
+        cost,
+    } = join_models(&args.settings())?;
     if let Some(c) = &choice {
-        for line in choice_table(c, args.guard_scope) {
+        for line in choice_table(c, args.guard_scope, cost.as_ref()) {
             println!("{line}");
         }
     }

@@ -7,15 +7,13 @@
 //! cross-validation over its box-only photographs, guarded by held-out
 //! single-pose photographs ([`super::join_guard`]).
 
-use super::join_guard::SinglePoseGuard;
+use super::join_check::{self, Check};
+use super::join_cost::{self, CostBench};
 use super::join_set;
-use super::photos::fold_range;
 use super::{load_model_dir, RouteError};
-use crate::data::Sample;
-use crate::eval::detection::ObjectScore;
 use crate::model::Model;
-use crate::train::ko8::{detect_all, score, EvalDetect, Ko8Data};
-use crate::train::{progress_bar, PyramidCache};
+use crate::train::ko8::{EvalDetect, Ko8Data};
+use crate::train::progress_bar;
 use std::path::PathBuf;
 
 /// What to join and how; see `sdhop-train join --help` for each field.
@@ -41,6 +39,14 @@ pub struct JoinSettings {
     /// What the single-pose guard holds: the set's figures or each
     /// object's.
     pub guard_scope: GuardScope,
+    /// The candidates' figures from an earlier check's models (their
+    /// provenance's `join_check`) instead of scoring the folds again.
+    pub recorded: Option<PathBuf>,
+    /// The set's estimated time at most this many times the unjoined
+    /// set's (`--guard-scope set` only; `None`: no budget, no cost pass).
+    pub max_time_ratio: Option<f64>,
+    /// Single-pose photographs the cost pass times each candidate on.
+    pub cost_photos: usize,
 }
 
 /// What `--check-folds`' single-pose guard holds.
@@ -72,6 +78,9 @@ impl Default for JoinSettings {
             min_gain: 0.01,
             single_tolerance: 0.002,
             guard_scope: GuardScope::Set,
+            recorded: None,
+            max_time_ratio: Some(1.4),
+            cost_photos: 24,
         }
     }
 }
@@ -82,23 +91,25 @@ pub struct Joined {
     pub models: Vec<(Model, String)>,
     /// With `check_folds`: each object's candidates and choice.
     pub choice: Option<Vec<Choice>>,
+    /// With `max_time_ratio`: the cost pass's figures.
+    pub cost: Option<CostInfo>,
 }
 
 /// One way to ship an object's model: joined at an offset or not, with a
 /// colour-agreement weight.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Setting {
     /// `None`: not joined.
     pub offset: Option<f64>,
     /// [`crate::vision::detect::DetectParams::colour_weight`].
     pub colour_weight: f64,
     /// The joined model's detection threshold (`None`: the base model's).
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub threshold: Option<f64>,
 }
 
 /// Figures of one setting for one object.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct Candidate {
     pub setting: Setting,
     /// Per fold: (AUC, cross-object AUC) on its held-out photographs.
@@ -109,6 +120,24 @@ pub struct Candidate {
     /// segmentation error, refined VOC error.
     pub single: Option<[f64; 4]>,
     pub admissible: bool,
+    /// Mean time per photograph of the object's model in this setting,
+    /// alone on one compute thread, ms ([`join_cost`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cost_ms: Option<f64>,
+}
+
+impl Candidate {
+    /// `setting`'s candidate, not yet scored.
+    pub fn blank(setting: Setting) -> Self {
+        Self {
+            setting,
+            folds: Vec::new(),
+            held_out: 0.0,
+            single: None,
+            admissible: true,
+            cost_ms: None,
+        }
+    }
 }
 
 /// What `--check-folds` chose for one object.
@@ -132,17 +161,31 @@ pub struct SetFigures {
     pub single: [f64; 4],
     pub unjoined_any_side: f64,
     pub unjoined_single: [f64; 4],
+    /// The set's estimated time over the unjoined set's, and the most
+    /// `--max-time-ratio` allowed ([`join_cost::time_ratio`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_ratio: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_time_ratio: Option<f64>,
 }
 
 /// The set's figures of `choice`; `None` where an object lacks them.
-pub fn set_figures(choice: &[Choice], scope: GuardScope) -> Option<SetFigures> {
+/// With the cost pass's `cost`, its estimated time ratio.
+pub fn set_figures(
+    choice: &[Choice],
+    scope: GuardScope,
+    cost: Option<&CostInfo>,
+) -> Option<SetFigures> {
     let mut sum = [0.0; 10];
+    let (mut chosen_ms, mut plain_ms) = (Vec::new(), Vec::new());
     for ch in choice {
         let plain = &ch.candidates[ch.plain?];
         let chosen = match ch.setting {
             Some(s) => ch.candidates.iter().find(|c| c.setting == s)?,
             None => plain,
         };
+        chosen_ms.push(chosen.cost_ms);
+        plain_ms.push(plain.cost_ms);
         let (a, b) = (chosen.single?, plain.single?);
         let row = [
             chosen.held_out,
@@ -160,6 +203,11 @@ pub fn set_figures(choice: &[Choice], scope: GuardScope) -> Option<SetFigures> {
     }
     let n = choice.len().max(1) as f64;
     let m: Vec<f64> = sum.iter().map(|s| s / n).collect();
+    let ms = |v: Vec<Option<f64>>| v.into_iter().collect::<Option<Vec<f64>>>();
+    let time_ratio = match (cost, ms(chosen_ms), ms(plain_ms)) {
+        (Some(c), Some(a), Some(b)) => Some(join_cost::time_ratio(c.pyramid_ms, &a, &b)),
+        _ => None,
+    };
     Some(SetFigures {
         guard_scope: match scope {
             GuardScope::Set => "set",
@@ -169,6 +217,8 @@ pub fn set_figures(choice: &[Choice], scope: GuardScope) -> Option<SetFigures> {
         single: [m[1], m[2], m[3], m[4]],
         unjoined_any_side: m[5],
         unjoined_single: [m[6], m[7], m[8], m[9]],
+        time_ratio,
+        max_time_ratio: cost.map(|c| c.max_time_ratio),
     })
 }
 
@@ -204,7 +254,11 @@ pub(super) fn applied_each(
 }
 
 /// `base`'s models all in `setting`.
-fn applied_all(base: &[Model], add: &[Model], setting: Setting) -> Result<Vec<Model>, RouteError> {
+pub(super) fn applied_all(
+    base: &[Model],
+    add: &[Model],
+    setting: Setting,
+) -> Result<Vec<Model>, RouteError> {
     applied_each(base, add, &vec![Some(setting); base.len()])
 }
 
@@ -215,27 +269,6 @@ pub(super) const CHECK_DETECT: EvalDetect = EvalDetect {
     threshold: None,
     pixel: None,
 };
-
-/// Detections of `models` on `images` scored per object.
-fn evaluate(
-    data: &Ko8Data,
-    images: &[&Sample],
-    models: &[Model],
-    cache: &PyramidCache,
-) -> Result<Vec<ObjectScore>, RouteError> {
-    let refs: Vec<&Model> = models.iter().collect();
-    let responses = detect_all(images, &refs, cache, CHECK_DETECT).map_err(RouteError::input)?;
-    Ok(score(data, images, &responses).objects)
-}
-
-fn fill_cache(cache: &PyramidCache, images: &[&Sample], m: &Model) -> Result<(), RouteError> {
-    let pb = progress_bar(0, "pyramids");
-    cache
-        .fill(images, &m.meta.pyramid, &m.meta.segmentation, &pb)
-        .map_err(RouteError::input)?;
-    pb.finish_and_clear();
-    Ok(())
-}
 
 /// The settings the check compares: for each colour weight asked for (the
 /// base model's own without any), not joining and joining at each offset.
@@ -258,35 +291,27 @@ fn settings_grid(args: &JoinSettings, m0: &Model) -> Vec<Setting> {
         .collect()
 }
 
-/// One candidate per base model and setting, not yet scored.
-fn blank_candidates(base: &[Model], settings: &[Setting]) -> Vec<Vec<Candidate>> {
-    base.iter()
-        .map(|_| {
-            settings
-                .iter()
-                .map(|&setting| Candidate {
-                    setting,
-                    folds: Vec::new(),
-                    held_out: 0.0,
-                    single: None,
-                    admissible: true,
-                })
-                .collect()
-        })
-        .collect()
+/// The cost pass's figures, the same for every candidate: the
+/// pyramid's time, the budget's ratio and the photographs timed.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct CostInfo {
+    pub pyramid_ms: f64,
+    pub max_time_ratio: f64,
+    pub photographs: usize,
 }
 
-/// The setting chosen per object by the folds, with every candidate's
-/// figures.
+/// The setting chosen per object by the folds (or by the figures
+/// `--recorded` holds), with every candidate's figures, and the cost
+/// pass's where `--max-time-ratio` asks for one.
 fn choose_settings(
     args: &JoinSettings,
     base: &[Model],
     added: &[Model],
-) -> Result<Vec<Choice>, RouteError> {
+) -> Result<(Vec<Choice>, Option<CostInfo>), RouteError> {
     let root = args
         .ko8
         .as_ref()
-        .ok_or_else(|| RouteError::input("--check-folds needs --ko8"))?;
+        .ok_or_else(|| RouteError::input("--check-folds and --recorded need --ko8"))?;
     if args
         .offsets
         .iter()
@@ -298,79 +323,152 @@ fn choose_settings(
             "--offsets and --thresholds must be finite numbers, --colour-weights finite and >= 0",
         ));
     }
-    let guard_dir = args.guard_folds.as_ref().ok_or_else(|| {
-        RouteError::input(
-            "--check-folds needs --guard-folds DIR: single-pose models of a cross-validation \
-             (`sdhop-train cv --ko8 DATA --folds K --save-models DIR`), so that the single-pose \
-             guard scores photographs that trained neither side",
-        )
-    })?;
-    let data = Ko8Data::load(root, &[])
-        .and_then(|d| d.with_multiview(root))
-        .map_err(RouteError::input)?;
+    if args
+        .max_time_ratio
+        .is_some_and(|r| !(r >= 1.0 && r.is_finite()))
+        || args.cost_photos == 0
+    {
+        return Err(RouteError::input(
+            "--max-time-ratio must be a finite number >= 1 and --cost-photos at least 1",
+        ));
+    }
     let m0 = base
         .first()
         .ok_or_else(|| RouteError::input("no base model"))?;
-    let settings = settings_grid(args, m0);
-    let guard = SinglePoseGuard::load(guard_dir, &data, base)?;
-    let mut cands = blank_candidates(base, &settings);
-    let position =
-        |scores: &[ObjectScore], name: &str| scores.iter().position(|s| s.object == name);
-    let n = args.check_folds.len();
-    let pb = progress_bar(
-        (settings.len() * (n + 1)) as u64,
-        "settings on the folds and single-pose photographs",
-    );
-    let mut folds = Vec::new();
-    for (k, dir) in args.check_folds.iter().enumerate() {
-        let fold = load_model_dir(dir)?;
-        let images: Vec<&Sample> = data
-            .photos
-            .iter()
-            .flat_map(|p| p[fold_range(k, n, p.len())].iter())
-            .collect();
-        pb.println(format!(
-            "fold {k}/{n} ({}): {} held-out box-only photographs",
-            dir.display(),
-            images.len()
-        ));
-        let cache = PyramidCache::default();
-        fill_cache(&cache, &images, m0)?;
-        for (ci, &setting) in settings.iter().enumerate() {
-            let models = applied_all(base, &fold, setting)?;
-            let scores = evaluate(&data, &images, &models, &cache)?;
-            for (mi, m) in base.iter().enumerate() {
-                let s = position(&scores, &m.meta.name).map(|i| &scores[i]);
-                cands[mi][ci]
-                    .folds
-                    .push(s.map_or((0.0, 0.0), |s| (s.auc, s.auc_cross)));
+    let guard_dir = match &args.recorded {
+        Some(_) => None,
+        None => Some(args.guard_folds.as_ref().ok_or_else(|| {
+            RouteError::input(
+                "--check-folds needs --guard-folds DIR: single-pose models of a cross-validation \
+                 (`sdhop-train cv --ko8 DATA --folds K --save-models DIR`), so that the single-pose \
+                 guard scores photographs that trained neither side",
+            )
+        })?),
+    };
+    let recorded = match &args.recorded {
+        Some(d) => Some(join_check::recorded_candidates(d, base)?),
+        None => None,
+    };
+    let data = match recorded {
+        Some(_) => Ko8Data::load(root, &[]),
+        None => Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root)),
+    }
+    .map_err(RouteError::input)?;
+    let (check, mut cands, recorded_higher) = match (recorded, guard_dir) {
+        (Some((grid, higher)), _) => (None, grid, Some(higher)),
+        (None, None) => return Err(RouteError::input("--check-folds or --recorded is needed")),
+        (None, Some(guard_dir)) => {
+            let check = Check::load(&data, base, &args.check_folds, guard_dir)?;
+            let cands = check.score_grid(base, added, &settings_grid(args, m0))?;
+            (Some(check), cands, None)
+        }
+    };
+    let bench = match args.max_time_ratio {
+        Some(r) => {
+            let photos = join_cost::cost_photographs(&data, args.cost_photos);
+            Some((CostBench::new(&photos, m0)?, r, photos.len()))
+        }
+        None => None,
+    };
+    if let Some((b, _, _)) = &bench {
+        time_candidates(b, base, added, &mut cands)?;
+    }
+    let budget = bench
+        .as_ref()
+        .and_then(|(b, r, _)| models_budget_of(&cands, base, b.pyramid_ms, *r));
+    let mut out = pick_all(args, base, added, cands, budget);
+    // Higher thresholds for the joined models (fewer locations reach the
+    // min-cuts, fewer masks), each object's chosen setting at each.
+    let mut extra = match (&check, recorded_higher) {
+        (_, Some(higher)) => recorded_at_chosen(&out, higher),
+        (Some(check), None) => threshold_candidates(check, args, base, added, &out, m0)?,
+        (None, None) => Vec::new(),
+    };
+    if extra.iter().all(Vec::is_empty) {
+        return Ok((out, bench.map(|(b, r, n)| cost_info(&b, r, n))));
+    }
+    if let Some((b, _, _)) = &bench {
+        time_candidates(b, base, added, &mut extra)?;
+    }
+    settle_thresholds(&mut out, extra, args);
+    Ok((out, bench.map(|(b, r, n)| cost_info(&b, r, n))))
+}
+
+fn cost_info(b: &CostBench, max_time_ratio: f64, photographs: usize) -> CostInfo {
+    CostInfo {
+        pyramid_ms: b.pyramid_ms,
+        max_time_ratio,
+        photographs,
+    }
+}
+
+/// Each candidate's `cost_ms`: its object's model in its setting, timed
+/// alone on the bench.
+fn time_candidates(
+    bench: &CostBench,
+    base: &[Model],
+    added: &[Model],
+    cands: &mut [Vec<Candidate>],
+) -> Result<(), RouteError> {
+    let total = cands.iter().map(Vec::len).sum::<usize>();
+    let pb = progress_bar(total as u64, "each candidate's time, alone on one thread");
+    for (m, cs) in base.iter().zip(cands.iter_mut()) {
+        let add = added.iter().find(|a| a.meta.name == m.meta.name);
+        for c in cs.iter_mut() {
+            // Joined without components to join: not a model to time.
+            if add.is_some() || c.setting.offset.is_none() {
+                c.cost_ms = Some(bench.model_ms(&apply(m, add, c.setting)?)?);
             }
             pb.inc(1);
         }
-        folds.push((fold, images, cache));
-    }
-    // The single-pose guard, with the components the output will carry,
-    // on single-pose photographs that trained neither side.
-    pb.println(format!(
-        "single-pose guard: {} held-out photographs of {} fold(s) ({})",
-        guard.photographs(),
-        guard.folds(),
-        guard_dir.display()
-    ));
-    for (ci, &setting) in settings.iter().enumerate() {
-        let scores = guard.score(&data, added, &vec![Some(setting); base.len()])?;
-        for (mi, m) in base.iter().enumerate() {
-            cands[mi][ci].single = position(&scores, &m.meta.name).map(|i| {
-                let s = &scores[i];
-                [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
-            });
-        }
-        pb.inc(1);
     }
     pb.finish_and_clear();
-    let mut out = pick_all(args, base, added, cands);
-    // Higher thresholds for the joined models (fewer locations reach the
-    // min-cuts, fewer masks), each object's chosen setting at each.
+    Ok(())
+}
+
+/// What the models may take together under `ratio`: `None` where an
+/// object's unjoined model has no time.
+fn models_budget_of(
+    cands: &[Vec<Candidate>],
+    base: &[Model],
+    pyramid_ms: f64,
+    ratio: f64,
+) -> Option<f64> {
+    let plain: Option<Vec<f64>> = cands
+        .iter()
+        .zip(base)
+        .map(|(cs, m)| cs[plain_of(cs, m.meta.detection.colour_weight)?].cost_ms)
+        .collect();
+    Some(join_cost::models_budget(ratio, pyramid_ms, &plain?))
+}
+
+/// Of the recorded candidates at higher thresholds, those of each
+/// object's chosen setting.
+fn recorded_at_chosen(out: &[Choice], higher: Vec<Vec<Candidate>>) -> Vec<Vec<Candidate>> {
+    out.iter()
+        .zip(higher)
+        .map(|(c, h)| match c.setting.filter(|s| s.offset.is_some()) {
+            Some(s) => h
+                .into_iter()
+                .filter(|x| {
+                    x.setting.offset == s.offset && x.setting.colour_weight == s.colour_weight
+                })
+                .collect(),
+            None => Vec::new(),
+        })
+        .collect()
+}
+
+/// Each joined object's chosen setting at each of `--thresholds` above
+/// the base models', scored on the folds and the guard (increasing).
+fn threshold_candidates(
+    check: &Check,
+    args: &JoinSettings,
+    base: &[Model],
+    added: &[Model],
+    out: &[Choice],
+    m0: &Model,
+) -> Result<Vec<Vec<Candidate>>, RouteError> {
     let mut thresholds: Vec<f64> = args
         .thresholds
         .iter()
@@ -378,67 +476,34 @@ fn choose_settings(
         .filter(|&t| t > m0.meta.detection.threshold)
         .collect();
     thresholds.sort_by(f64::total_cmp);
-    if thresholds.is_empty()
-        || out
-            .iter()
-            .all(|c| c.setting.is_none_or(|s| s.offset.is_none()))
+    let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
+    if out
+        .iter()
+        .all(|c| c.setting.is_none_or(|s| s.offset.is_none()))
     {
-        return Ok(out);
+        return Ok(extra);
     }
-    let pb = progress_bar(
-        (thresholds.len() * (n + 1)) as u64,
-        "thresholds of the joined models",
-    );
-    let at = |t: f64| -> Vec<Option<Setting>> {
-        out.iter()
+    let pb = progress_bar(thresholds.len() as u64, "thresholds of the joined models");
+    for &t in &thresholds {
+        let chosen: Vec<Option<Setting>> = out
+            .iter()
             .map(|c| {
                 c.setting.map(|s| Setting {
                     threshold: s.offset.map(|_| t),
                     ..s
                 })
             })
-            .collect()
-    };
-    let mut extra: Vec<Vec<Candidate>> = vec![Vec::new(); base.len()];
-    for &t in &thresholds {
-        let chosen = at(t);
-        let mut fold_scores = Vec::new();
-        for (fold, images, cache) in &folds {
-            fold_scores.push(evaluate(
-                &data,
-                images,
-                &applied_each(base, fold, &chosen)?,
-                cache,
-            )?);
-            pb.inc(1);
+            .collect();
+        for (e, c) in extra
+            .iter_mut()
+            .zip(check.score_chosen(base, added, &chosen)?)
+        {
+            e.extend(c);
         }
-        let single = guard.score(&data, added, &chosen)?;
         pb.inc(1);
-        for (mi, m) in base.iter().enumerate() {
-            let Some(setting) = chosen[mi].filter(|s| s.offset.is_some()) else {
-                continue;
-            };
-            let name = &m.meta.name;
-            let folds_of: Vec<(f64, f64)> = fold_scores
-                .iter()
-                .map(|sc| position(sc, name).map_or((0.0, 0.0), |i| (sc[i].auc, sc[i].auc_cross)))
-                .collect();
-            extra[mi].push(Candidate {
-                setting,
-                held_out: folds_of.iter().map(|(a, x)| 0.5 * (a + x)).sum::<f64>()
-                    / folds_of.len().max(1) as f64,
-                folds: folds_of,
-                single: position(&single, name).map(|i| {
-                    let s = &single[i];
-                    [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
-                }),
-                admissible: false,
-            });
-        }
     }
     pb.finish_and_clear();
-    settle_thresholds(&mut out, extra, args);
-    Ok(out)
+    Ok(extra)
 }
 
 /// Each object's choice among its scored candidates, as `--guard-scope`
@@ -448,6 +513,7 @@ fn pick_all(
     base: &[Model],
     added: &[Model],
     cands: Vec<Vec<Candidate>>,
+    budget: Option<f64>,
 ) -> Vec<Choice> {
     let has_add = |m: &Model| added.iter().any(|a| a.meta.name == m.meta.name);
     match args.guard_scope {
@@ -481,7 +547,8 @@ fn pick_all(
                     (cs, plain, has_add(m))
                 })
                 .collect();
-            let picks = join_set::pick_set(&mut objects, args.single_tolerance, args.min_gain);
+            let picks =
+                join_set::pick_set(&mut objects, args.single_tolerance, args.min_gain, budget);
             base.iter()
                 .zip(objects)
                 .zip(picks)
@@ -651,16 +718,16 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
             )));
         }
     }
-    let choice = if args.check_folds.is_empty() {
-        None
+    let (choice, cost) = if args.check_folds.is_empty() && args.recorded.is_none() {
+        (None, None)
     } else {
-        let c = choose_settings(args, &base, &added)?;
-        Some(c)
+        let (c, cost) = choose_settings(args, &base, &added)?;
+        (Some(c), cost)
     };
     // The set's figures, the same in every model's provenance.
     let set_json = match choice
         .as_ref()
-        .and_then(|c| set_figures(c, args.guard_scope))
+        .and_then(|c| set_figures(c, args.guard_scope, cost.as_ref()))
     {
         Some(f) => Some(serde_json::to_value(&f).map_err(RouteError::io)?),
         None => None,
@@ -712,17 +779,27 @@ pub fn join_models(args: &JoinSettings) -> Result<Joined, RouteError> {
             if let Some(f) = &set_json {
                 p.insert("join_set".into(), f.clone());
             }
+            if let Some(c) = &cost {
+                p.insert(
+                    "join_cost".into(),
+                    serde_json::to_value(c).map_err(RouteError::io)?,
+                );
+            }
         }
         models.push((j, line));
     }
-    Ok(Joined { models, choice })
+    Ok(Joined {
+        models,
+        choice,
+        cost,
+    })
 }
 
 /// The table of `--check-folds`' figures, a line each, then the set's
 /// figures under the choice and unjoined.
-pub fn choice_table(choice: &[Choice], scope: GuardScope) -> Vec<String> {
+pub fn choice_table(choice: &[Choice], scope: GuardScope, cost: Option<&CostInfo>) -> Vec<String> {
     let mut lines = vec![format!(
-        "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ok"
+        "object      offset (threshold) colour  held-out (AUC+cross)/2 [per fold]  single AUC/cross/seg/VOC  ms  ok"
     )];
     for ch in choice {
         for c in &ch.candidates {
@@ -739,8 +816,9 @@ pub fn choice_table(choice: &[Choice], scope: GuardScope) -> Vec<String> {
             } else {
                 ""
             };
+            let ms = c.cost_ms.map_or("-".into(), |t| format!("{t:.1}"));
             lines.push(format!(
-                "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {}{mark}",
+                "{:<11} {:>6} {:>6.2}  {:.3} [{}]  {single}  {ms}  {}{mark}",
                 ch.name,
                 match (c.setting.offset, c.setting.threshold) {
                     (None, _) => "none".to_string(),
@@ -754,7 +832,7 @@ pub fn choice_table(choice: &[Choice], scope: GuardScope) -> Vec<String> {
             ));
         }
     }
-    if let Some(f) = set_figures(choice, scope) {
+    if let Some(f) = set_figures(choice, scope, cost) {
         let single = |s: [f64; 4]| format!("{:.4}/{:.4}/{:.4}/{:.4}", s[0], s[1], s[2], s[3]);
         lines.push(format!(
             "set ({} guard), mean over objects: any side held out {:.4} (unjoined {:.4}); \
@@ -765,6 +843,13 @@ pub fn choice_table(choice: &[Choice], scope: GuardScope) -> Vec<String> {
             single(f.single),
             single(f.unjoined_single)
         ));
+        if let (Some(r), Some(c)) = (f.time_ratio, cost) {
+            lines.push(format!(
+                "time (each model alone on one thread, {} single-pose photographs, pyramid {:.1} ms): \
+                 {r:.2}x the unjoined set's (at most {:.2})",
+                c.photographs, c.pyramid_ms, c.max_time_ratio
+            ));
+        }
     }
     lines
 }
@@ -789,6 +874,7 @@ mod tests {
             held_out: 0.0,
             single: Some(single),
             admissible: false,
+            cost_ms: None,
         }
     }
 
@@ -856,7 +942,7 @@ mod tests {
                 plain: Some(0),
             },
         ];
-        let f = set_figures(&choice, GuardScope::Set).unwrap();
+        let f = set_figures(&choice, GuardScope::Set, None).unwrap();
         assert!((f.any_side - 0.8).abs() < 1e-12);
         assert!((f.unjoined_any_side - 0.6).abs() < 1e-12);
         let near = |got: [f64; 4], want: [f64; 4]| {
@@ -868,7 +954,10 @@ mod tests {
             "{:?}",
             f.unjoined_single
         );
-        assert_eq!(choice_table(&choice, GuardScope::Set).len(), 1 + 3 + 1);
+        assert_eq!(
+            choice_table(&choice, GuardScope::Set, None).len(),
+            1 + 3 + 1
+        );
     }
 
     #[test]

@@ -15,6 +15,8 @@
 pub mod coco;
 pub mod cv;
 pub mod join;
+pub mod join_check;
+pub mod join_cost;
 pub mod join_guard;
 mod join_set;
 pub mod ko8;
