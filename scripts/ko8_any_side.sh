@@ -9,7 +9,9 @@
 # so no photograph that trained what it judges is scored). The choice is
 # the set's (join --guard-scope set, the default): the settings that find
 # the objects best from any side together, the set's single-pose means no
-# worse than the unjoined set's.
+# worse than the unjoined set's and its time (each candidate timed alone
+# on one thread; join --max-time-ratio, default 1.4) at most 1.4 times
+# the unjoined set's.
 #
 #   scripts/ko8_any_side.sh OUT [train flags...]
 #   BASE=models scripts/ko8_any_side.sh out/any-side     # -> out/any-side/models
