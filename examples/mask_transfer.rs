@@ -37,15 +37,16 @@ fn iou(a: Box4, b: Box4) -> f64 {
     }
 }
 
-/// The HOG location (any level and viewpoint) whose box best overlaps
-/// `target`, and that overlap.
-fn best_location(
+/// The locations (any level and viewpoint) within `radius` cells of the
+/// one centred on `target`, each with its box's overlap with `target`.
+fn around(
     det: &Detector,
     n_views: usize,
     pyr: &FeaturePyramid,
     target: Box4,
-) -> Option<(Location, f64)> {
-    let mut best: Option<(Location, f64)> = None;
+    radius: isize,
+) -> Vec<(Location, f64)> {
+    let mut out = Vec::new();
     for level in 0..pyr.levels.len() {
         for view in 0..n_views {
             let origin = Location {
@@ -62,23 +63,32 @@ fn best_location(
             );
             let cx = ((target.0 + 0.5 * target.2 - 0.5 * w) / sx).round() as isize;
             let cy = ((target.1 + 0.5 * target.3 - 0.5 * h) / sy).round() as isize;
-            for dy in -1..=1 {
-                for dx in -1..=1 {
+            for dy in -radius..=radius {
+                for dx in -radius..=radius {
                     let loc = Location {
                         level,
                         view,
                         y: cy + dy,
                         x: cx + dx,
                     };
-                    let o = iou(det.grid(pyr, &loc).pixel_box(), target);
-                    if best.is_none_or(|(_, b)| o > b) {
-                        best = Some((loc, o));
-                    }
+                    out.push((loc, iou(det.grid(pyr, &loc).pixel_box(), target)));
                 }
             }
         }
     }
-    best
+    out
+}
+
+/// The HOG location whose box best overlaps `target`, and that overlap.
+fn best_location(
+    det: &Detector,
+    n_views: usize,
+    pyr: &FeaturePyramid,
+    target: Box4,
+) -> Option<(Location, f64)> {
+    around(det, n_views, pyr, target, 1)
+        .into_iter()
+        .max_by(|a, b| a.1.total_cmp(&b.1))
 }
 
 /// The HOG location of least energy among those whose box overlaps
@@ -91,46 +101,11 @@ fn best_near(
     target: Box4,
     min_iou: f64,
 ) -> Option<Detection> {
-    let mut best: Option<Detection> = None;
-    for level in 0..pyr.levels.len() {
-        for view in 0..n_views {
-            let origin = Location {
-                level,
-                view,
-                y: 0,
-                x: 0,
-            };
-            let g = det.grid(pyr, &origin);
-            let (_, _, w, h) = g.pixel_box();
-            if iou((0.0, 0.0, w, h), (0.0, 0.0, target.2, target.3)) < min_iou {
-                continue;
-            }
-            let (sx, sy) = (
-                g.cell_size as f64 / g.scale_x,
-                g.cell_size as f64 / g.scale_y,
-            );
-            let cx = ((target.0 + 0.5 * target.2 - 0.5 * w) / sx).round() as isize;
-            let cy = ((target.1 + 0.5 * target.3 - 0.5 * h) / sy).round() as isize;
-            for dy in -4..=4 {
-                for dx in -4..=4 {
-                    let loc = Location {
-                        level,
-                        view,
-                        y: cy + dy,
-                        x: cx + dx,
-                    };
-                    if iou(det.grid(pyr, &loc).pixel_box(), target) < min_iou {
-                        continue;
-                    }
-                    let d = solved_at(det, pyr, &loc);
-                    if best.as_ref().is_none_or(|b| d.score > b.score) {
-                        best = Some(d);
-                    }
-                }
-            }
-        }
-    }
-    best
+    around(det, n_views, pyr, target, 4)
+        .into_iter()
+        .filter(|(_, o)| *o >= min_iou)
+        .map(|(loc, _)| solved_at(det, pyr, &loc))
+        .max_by(|a, b| a.score.total_cmp(&b.score))
 }
 
 /// The HOG model's cells at `loc`, its CRF solved without pruning.

@@ -32,6 +32,25 @@ fn single_of(s: &ObjectScore) -> [f64; 4] {
     [s.auc, s.auc_cross, s.seg_error_refined, s.voc_error_refined]
 }
 
+/// `images`' pyramids with `m`'s settings (every model the join compares
+/// shares them), behind a progress bar that first prints `note`.
+pub(super) fn filled_cache(
+    images: &[&Sample],
+    m: &Model,
+    note: Option<&str>,
+) -> Result<PyramidCache, RouteError> {
+    let cache = PyramidCache::default();
+    let pb = progress_bar(0, "pyramids");
+    if let Some(n) = note {
+        pb.println(n);
+    }
+    cache
+        .fill(images, &m.meta.pyramid, &m.meta.segmentation, &pb)
+        .map_err(RouteError::input)?;
+    pb.finish_and_clear();
+    Ok(cache)
+}
+
 /// Detections of `models` on `images` scored per object.
 fn evaluate(
     data: &Ko8Data,
@@ -67,25 +86,20 @@ impl<'a> Check<'a> {
                 .iter()
                 .flat_map(|p| p[fold_range(k, n, p.len())].iter())
                 .collect();
-            println!(
+            let note = format!(
                 "fold {k}/{n} ({}): {} held-out box-only photographs",
                 dir.display(),
                 images.len()
             );
-            let cache = PyramidCache::default();
-            let pb = progress_bar(0, "pyramids");
-            cache
-                .fill(&images, &m0.meta.pyramid, &m0.meta.segmentation, &pb)
-                .map_err(RouteError::input)?;
-            pb.finish_and_clear();
+            let cache = filled_cache(&images, m0, Some(&note))?;
             folds.push((fold, images, cache));
         }
-        println!(
+        progress_bar(0, "").println(format!(
             "single-pose guard: {} held-out photographs of {} fold(s) ({})",
             guard.photographs(),
             guard.folds(),
             guard_dir.display()
-        );
+        ));
         Ok(Self { data, folds, guard })
     }
 

@@ -8,12 +8,13 @@
 //! responses of the folds before scoring them, as `cv` does.
 
 use super::join::{applied_each, Setting, CHECK_DETECT};
+use super::join_check::filled_cache;
 use super::{load_model_dir, RouteError};
 use crate::data::Sample;
 use crate::eval::detection::ObjectScore;
 use crate::model::Model;
 use crate::train::ko8::{detect_all, fold_dir, score, FoldOf, Ko8Data, FOLD_FILE};
-use crate::train::{progress_bar, PyramidCache};
+use crate::train::PyramidCache;
 use std::path::Path;
 
 /// The photographs the guard scores for `fold`: the held-out single-pose
@@ -67,12 +68,7 @@ impl<'a> SinglePoseGuard<'a> {
             let models = load_model_dir(&d)?;
             let ordered = in_base_order(base, models, &d)?;
             let images = guard_photographs(data, fold);
-            let cache = PyramidCache::default();
-            let pb = progress_bar(0, "pyramids");
-            cache
-                .fill(&images, &m0.meta.pyramid, &m0.meta.segmentation, &pb)
-                .map_err(RouteError::input)?;
-            pb.finish_and_clear();
+            let cache = filled_cache(&images, m0, None)?;
             folds.push(GuardFold {
                 base: ordered,
                 images,
