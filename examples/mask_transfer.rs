@@ -4,8 +4,10 @@
 //! learned cells, one with HOG), each learned model's top detection is
 //! segmented three ways: by its own cells; by the HOG model's cells at the
 //! HOG location whose box best overlaps it (its CRF solved there, no
-//! pruning); and, for comparison, the HOG model's own top detection by its
-//! own cells. Each mask refined by its model's pixel refinement; refined
+//! pruning); by the HOG model's cells at its best location whose box
+//! overlaps the learned one enough (`Detector::best_near`, `MIN_IOU`,
+//! default 0.5); by the learned cells at that location; and, for
+//! comparison, the HOG model's own top detection by its own cells. Each mask refined by its model's pixel refinement; refined
 //! and raw segerr (1 - IoU with the visible truth), mean per object.
 //!
 //! `cargo run --release --example mask_transfer -- KO8_ROOT CNN_DIR HOG_DIR FOLDS`
@@ -89,23 +91,6 @@ fn best_location(
     around(det, n_views, pyr, target, 1)
         .into_iter()
         .max_by(|a, b| a.1.total_cmp(&b.1))
-}
-
-/// The HOG location of least energy among those whose box overlaps
-/// `target` by at least `min_iou` (HOG's own search, kept near the learned
-/// detection).
-fn best_near(
-    det: &Detector,
-    n_views: usize,
-    pyr: &FeaturePyramid,
-    target: Box4,
-    min_iou: f64,
-) -> Option<Detection> {
-    around(det, n_views, pyr, target, 4)
-        .into_iter()
-        .filter(|(_, o)| *o >= min_iou)
-        .map(|(loc, _)| solved_at(det, pyr, &loc))
-        .max_by(|a, b| a.score.total_cmp(&b.score))
 }
 
 /// The HOG model's cells at `loc`, its CRF solved without pruning.
@@ -201,7 +186,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let (raw, refined) = masks(&hog, &h, &ph);
                 acc[4] += err(&refined);
                 acc[5] += err(&raw);
-                let near = best_near(&dh, hog.views.len(), &ph, c.bbox, min_iou).unwrap_or(t);
+                let near = dh
+                    .best_near(&ph, c.bbox, min_iou, hog.meta.detection.max_truncation)
+                    .unwrap_or(t);
                 let (raw, refined) = masks(&hog, &near, &ph);
                 acc[6] += err(&refined);
                 acc[7] += err(&raw);

@@ -28,6 +28,7 @@
 mod bounds;
 mod location;
 mod low_rank;
+mod near;
 mod transfer;
 
 use std::time::Instant;
@@ -822,34 +823,39 @@ impl<'a> Detector<'a> {
             if count[group] >= params.max_detections {
                 continue;
             }
-            let view = &self.views[s.cand.view];
-            let level = &pyr.levels[s.cand.level];
-            let grid = self.grid(pyr, &s.cand.location());
-            let bbox = grid.pixel_box();
+            let bbox = self.grid(pyr, &s.cand.location()).pixel_box();
             if out.iter().any(|d| {
                 self.groups[d.viewpoint] == group && box_iou(d.bbox, bbox) > params.nms_iou
             }) {
                 continue;
             }
             count[group] += 1;
-            let (mw, mh) = (level.hog.width(), level.hog.height());
-            let truncated = s.cand.x < 0
-                || s.cand.y < 0
-                || s.cand.x + view.w.cols as isize > mw as isize
-                || s.cand.y + view.w.rows as isize > mh as isize;
-            let visible = s.cells.iter().filter(|&&v| v).count();
-            out.push(Detection {
-                viewpoint: s.cand.view,
-                level: s.cand.level,
-                score: -s.energy,
-                bbox,
-                grid,
-                visible_fraction: visible as f64 / s.cells.len() as f64,
-                cells: s.cells,
-                truncated,
-            });
+            out.push(self.detection_of(pyr, s));
         }
         out
+    }
+
+    /// The detection of a solved location.
+    fn detection_of(&self, pyr: &FeaturePyramid, s: Solved) -> Detection {
+        let view = &self.views[s.cand.view];
+        let level = &pyr.levels[s.cand.level];
+        let grid = self.grid(pyr, &s.cand.location());
+        let (mw, mh) = (level.hog.width(), level.hog.height());
+        let truncated = s.cand.x < 0
+            || s.cand.y < 0
+            || s.cand.x + view.w.cols as isize > mw as isize
+            || s.cand.y + view.w.rows as isize > mh as isize;
+        let visible = s.cells.iter().filter(|&&v| v).count();
+        Detection {
+            viewpoint: s.cand.view,
+            level: s.cand.level,
+            score: -s.energy,
+            bbox: grid.pixel_box(),
+            grid,
+            visible_fraction: visible as f64 / s.cells.len().max(1) as f64,
+            cells: s.cells,
+            truncated,
+        }
     }
 }
 
