@@ -8,7 +8,7 @@
 //! single-pose photographs ([`super::join_guard`]).
 
 use super::join_check::{self, Check};
-use super::join_cost::{self, CostBench};
+use super::join_cost::{self, CostBench, CostInfo};
 use super::join_set;
 use super::{load_model_dir, RouteError};
 use crate::model::Model;
@@ -291,15 +291,6 @@ fn settings_grid(args: &JoinSettings, m0: &Model) -> Vec<Setting> {
         .collect()
 }
 
-/// The cost pass's figures, the same for every candidate: the
-/// pyramid's time, the budget's ratio and the photographs timed.
-#[derive(Clone, Copy, Debug, serde::Serialize)]
-pub struct CostInfo {
-    pub pyramid_ms: f64,
-    pub max_time_ratio: f64,
-    pub photographs: usize,
-}
-
 /// The setting chosen per object by the folds (or by the figures
 /// `--recorded` holds), with every candidate's figures, and the cost
 /// pass's where `--max-time-ratio` asks for one.
@@ -335,6 +326,8 @@ fn choose_settings(
     let m0 = base
         .first()
         .ok_or_else(|| RouteError::input("no base model"))?;
+    // Checked before the data are read: a check without its guard is
+    // refused as such.
     let guard_dir = match &args.recorded {
         Some(_) => None,
         None => Some(args.guard_folds.as_ref().ok_or_else(|| {
@@ -349,33 +342,35 @@ fn choose_settings(
         Some(d) => Some(join_check::recorded_candidates(d, base)?),
         None => None,
     };
-    let data = match recorded {
-        Some(_) => Ko8Data::load(root, &[]),
-        None => Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root)),
+    let data = match guard_dir {
+        None => Ko8Data::load(root, &[]),
+        Some(_) => Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root)),
     }
     .map_err(RouteError::input)?;
+    // The candidates' figures: recorded, or scored on the folds and the
+    // guard (whose check also scores the thresholds below).
     let (check, mut cands, recorded_higher) = match (recorded, guard_dir) {
         (Some((grid, higher)), _) => (None, grid, Some(higher)),
-        (None, None) => return Err(RouteError::input("--check-folds or --recorded is needed")),
-        (None, Some(guard_dir)) => {
+        (None, guard_dir) => {
+            let guard_dir = guard_dir.ok_or_else(|| RouteError::input("no --guard-folds"))?;
             let check = Check::load(&data, base, &args.check_folds, guard_dir)?;
             let cands = check.score_grid(base, added, &settings_grid(args, m0))?;
             (Some(check), cands, None)
         }
     };
     let bench = match args.max_time_ratio {
-        Some(r) => {
-            let photos = join_cost::cost_photographs(&data, args.cost_photos);
-            Some((CostBench::new(&photos, m0)?, r, photos.len()))
-        }
+        Some(r) => Some((
+            CostBench::new(&join_cost::cost_photographs(&data, args.cost_photos), m0)?,
+            r,
+        )),
         None => None,
     };
-    if let Some((b, _, _)) = &bench {
+    if let Some((b, _)) = &bench {
         time_candidates(b, base, added, &mut cands)?;
     }
     let budget = bench
         .as_ref()
-        .and_then(|(b, r, _)| models_budget_of(&cands, base, b.pyramid_ms, *r));
+        .and_then(|(b, r)| models_budget_of(&cands, base, b.pyramid_ms, *r));
     let mut out = pick_all(args, base, added, cands, budget);
     // Higher thresholds for the joined models (fewer locations reach the
     // min-cuts, fewer masks), each object's chosen setting at each.
@@ -384,22 +379,11 @@ fn choose_settings(
         (Some(check), None) => threshold_candidates(check, args, base, added, &out, m0)?,
         (None, None) => Vec::new(),
     };
-    if extra.iter().all(Vec::is_empty) {
-        return Ok((out, bench.map(|(b, r, n)| cost_info(&b, r, n))));
-    }
-    if let Some((b, _, _)) = &bench {
+    if let Some((b, _)) = &bench {
         time_candidates(b, base, added, &mut extra)?;
     }
     settle_thresholds(&mut out, extra, args);
-    Ok((out, bench.map(|(b, r, n)| cost_info(&b, r, n))))
-}
-
-fn cost_info(b: &CostBench, max_time_ratio: f64, photographs: usize) -> CostInfo {
-    CostInfo {
-        pyramid_ms: b.pyramid_ms,
-        max_time_ratio,
-        photographs,
-    }
+    Ok((out, bench.map(|(b, r)| b.info(r))))
 }
 
 /// Each candidate's `cost_ms`: its object's model in its setting, timed

@@ -22,6 +22,15 @@ use std::time::Instant;
 /// How many times each photograph is timed per model (the fastest kept).
 pub const ROUNDS: usize = 2;
 
+/// The cost pass's figures, the same for every candidate: the
+/// pyramid's time, the budget's ratio and the photographs timed.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct CostInfo {
+    pub pyramid_ms: f64,
+    pub max_time_ratio: f64,
+    pub photographs: usize,
+}
+
 /// The photographs the costs are timed on, their pyramids built, on one
 /// compute thread.
 pub struct CostBench {
@@ -83,6 +92,15 @@ impl CostBench {
             pyramids,
             pyramid_ms,
         })
+    }
+
+    /// The figures of this bench under the budget `max_time_ratio`.
+    pub fn info(&self, max_time_ratio: f64) -> CostInfo {
+        CostInfo {
+            pyramid_ms: self.pyramid_ms,
+            max_time_ratio,
+            photographs: self.pyramids.len(),
+        }
     }
 
     /// Mean time per photograph for `m` alone to answer as the service
