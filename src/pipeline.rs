@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::Model;
+use crate::model::{Model, SEGMENTER_MIN_IOU};
 use crate::vision::detect::{
     detection_masks, DenseBounds, DetectParams, DetectStats, Detection, Detector, Location,
     PlanarMaps, Region, Transfer,
@@ -112,7 +112,9 @@ pub struct DetectionJson {
     pub level: usize,
     pub visible_fraction: f64,
     pub truncated: bool,
-    /// Refined visible mask (COCO uncompressed RLE over the whole image).
+    /// Refined visible mask (COCO uncompressed RLE over the whole image);
+    /// made by the model's segmenter where it has one
+    /// ([`Model::segmenter`]), as `raw_mask` and `visible_fraction` are.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub mask: Option<Rle>,
     /// Cell-level visible mask.
@@ -173,14 +175,16 @@ pub struct DetectResponse {
 }
 
 /// The distinct feature settings (pyramid and over-segmentation) of
-/// `models`, in the order the models first use them: one pyramid per
-/// setting serves every model.
+/// `models` and of their segmenters ([`Model::segmenter`]), in the order
+/// they are first used: one pyramid per setting serves every model.
 pub fn feature_settings(models: &[&Model]) -> Vec<(PyramidParams, SegmentParams)> {
     let mut out: Vec<(PyramidParams, SegmentParams)> = Vec::new();
     for m in models {
-        let s = (m.meta.pyramid, m.meta.segmentation);
-        if !out.contains(&s) {
-            out.push(s);
+        for m in std::iter::once(*m).chain(m.segmenter.as_deref()) {
+            let s = (m.meta.pyramid, m.meta.segmentation);
+            if !out.contains(&s) {
+                out.push(s);
+            }
         }
     }
     out
@@ -201,22 +205,27 @@ pub fn detect_image(
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
     check_pixels(img.width(), img.height(), opts.max_pixels)?;
-    let pyramids = feature_settings(models)
-        .iter()
-        .map(|(p, s)| FeaturePyramid::build(img, p, s))
-        .collect::<Result<Vec<_>, _>>()?;
+    let img = std::sync::Arc::new(img.clone());
+    let pyramids = FeaturePyramid::build_all(&img, &feature_settings(models), Deadline::NONE)?;
     let refs: Vec<&FeaturePyramid> = pyramids.iter().collect();
     detect_prebuilt(&refs, models, opts)
 }
 
 /// Runs every model on an image whose pyramid is already built; models whose
-/// feature settings differ from the pyramid's are refused.
+/// feature settings differ from the pyramid's are refused, while their
+/// segmenters' pyramids are built beside it where needed.
 pub fn detect_pyramid(
     pyr: &FeaturePyramid,
     models: &[&Model],
     opts: &DetectOptions,
 ) -> Result<DetectResponse, VisionError> {
-    detect_prebuilt(&[pyr], models, opts)
+    let segmenters: Vec<&Model> = models
+        .iter()
+        .filter_map(|m| m.segmenter.as_deref())
+        .collect();
+    let others = pyr.build_others(&feature_settings(&segmenters), opts.deadline)?;
+    let all: Vec<&FeaturePyramid> = std::iter::once(pyr).chain(&others).collect();
+    detect_prebuilt(&all, models, opts)
 }
 
 /// Runs every model on pyramids of one image built elsewhere (by a compute
@@ -257,20 +266,19 @@ pub fn detect_prebuilt_with(
         .iter()
         .map(|p| (opts.transfer && models.len() > 1).then(|| Transfer::new(p)))
         .collect();
-    // The pyramid of each model.
+    // The pyramid of each model, and of its segmenter.
     let of_model: Vec<usize> = models
         .iter()
+        .map(|model| pyramid_of(pyramids, model))
+        .collect::<Result<_, _>>()?;
+    let of_segmenter: Vec<Option<usize>> = models
+        .iter()
         .map(|model| {
-            let m = &model.meta;
-            pyramids
-                .iter()
-                .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
-                .ok_or_else(|| {
-                    VisionError::InvalidParameter(format!(
-                        "model {} needs other pyramid settings than the image's",
-                        m.name
-                    ))
-                })
+            model
+                .segmenter
+                .as_deref()
+                .map(|s| pyramid_of(pyramids, s))
+                .transpose()
         })
         .collect::<Result<_, _>>()?;
     // Stage 1's feature planes, once per pyramid that several models scan
@@ -300,30 +308,40 @@ pub fn detect_prebuilt_with(
     for (mi, model) in models.iter().enumerate() {
         let idx = of_model[mi];
         let pyr = pyramids[idx];
-        if (pyr.image_width, pyr.image_height) != (w, h) {
-            return Err(VisionError::InvalidParameter(
-                "pyramids of different images".into(),
-            ));
-        }
-        if !used[idx] {
-            used[idx] = true;
-            timing.features += pyr.timing.features_ms;
-            timing.segmentation += pyr.timing.segmentation_ms;
-            timing.cell_segments += pyr.timing.cell_segments_ms;
-            built_ms += pyr.timing.total_ms;
+        for i in std::iter::once(idx).chain(of_segmenter[mi]) {
+            let pyr = pyramids[i];
+            if (pyr.image_width, pyr.image_height) != (w, h) {
+                return Err(VisionError::InvalidParameter(
+                    "pyramids of different images".into(),
+                ));
+            }
+            if !used[i] {
+                used[i] = true;
+                timing.features += pyr.timing.features_ms;
+                timing.segmentation += pyr.timing.segmentation_ms;
+                timing.cell_segments += pyr.timing.cell_segments_ms;
+                built_ms += pyr.timing.total_ms;
+            }
         }
         let pre = bounds.get(mi).copied().flatten();
-        scanned.push(scan_model(
-            pyr,
-            model,
-            pre,
-            shared[idx].as_ref(),
-            opts,
-            transfers[idx].as_mut(),
-            &colours[idx],
-            &mut timing,
-            &mut stats,
-        )?);
+        let segmenter = model
+            .segmenter
+            .as_deref()
+            .zip(of_segmenter[mi].map(|i| pyramids[i]));
+        scanned.push(
+            scan_model(
+                pyr,
+                model,
+                pre,
+                shared[idx].as_ref(),
+                opts,
+                transfers[idx].as_mut(),
+                &colours[idx],
+                &mut timing,
+                &mut stats,
+            )?
+            .segmented_by(segmenter),
+        );
     }
     // Every model's masks in one parallel batch, in model order.
     let t = Instant::now();
@@ -342,6 +360,20 @@ pub fn detect_prebuilt_with(
     Ok(resp)
 }
 
+/// The index of the pyramid built with `model`'s feature settings.
+fn pyramid_of(pyramids: &[&FeaturePyramid], model: &Model) -> Result<usize, VisionError> {
+    let m = &model.meta;
+    pyramids
+        .iter()
+        .position(|p| p.params == m.pyramid && p.seg_params == m.segmentation)
+        .ok_or_else(|| {
+            VisionError::InvalidParameter(format!(
+                "model {} needs other pyramid settings than the image's",
+                m.name
+            ))
+        })
+}
+
 /// One model's detections, before their masks.
 struct Scanned<'a> {
     pyr: &'a FeaturePyramid,
@@ -350,6 +382,39 @@ struct Scanned<'a> {
     dets: Vec<Detection>,
     /// The image's colours, for the colour agreement of models that use it.
     image_colours: Option<&'a [f32]>,
+    /// The model's segmenter and its pyramid ([`Model::segmenter`]).
+    segmenter: Option<(&'a Model, &'a FeaturePyramid)>,
+}
+
+impl<'a> Scanned<'a> {
+    fn segmented_by(mut self, segmenter: Option<(&'a Model, &'a FeaturePyramid)>) -> Self {
+        self.segmenter = segmenter;
+        self
+    }
+
+    /// Detection `d`'s raw and refined masks and its visible fraction: by
+    /// the segmenter's best location whose box overlaps `d`'s by
+    /// [`SEGMENTER_MIN_IOU`] or more where the model has a segmenter and
+    /// one does, else by `d` itself.
+    fn masks(&self, d: &Detection) -> Result<(Mask, Mask, f64), VisionError> {
+        if let Some((seg, pyr)) = self.segmenter {
+            let p = &seg.meta.detection;
+            let near = Detector::new(&seg.views)?.best_near(
+                pyr,
+                d.bbox,
+                SEGMENTER_MIN_IOU,
+                p.max_truncation,
+            );
+            if let Some(n) = near {
+                let shape = seg.shapes.get(n.viewpoint).and_then(Option::as_ref);
+                let (raw, refined) = detection_masks(&n, pyr, &p.refine, shape);
+                return Ok((raw, refined, n.visible_fraction));
+            }
+        }
+        let shape = self.model.shapes.get(d.viewpoint).and_then(Option::as_ref);
+        let (raw, refined) = detection_masks(d, self.pyr, &self.params.refine, shape);
+        Ok((raw, refined, d.visible_fraction))
+    }
 }
 
 /// One model's scan; with a `transfer`, the scan sees the cells earlier
@@ -442,6 +507,7 @@ fn scan_model<'a>(
         params,
         dets,
         image_colours,
+        segmenter: None,
     })
 }
 
@@ -483,12 +549,12 @@ fn detection_json(
     let object_colours = shape.and_then(|s| s.colours.as_ref());
     let masks = match (&s.image_colours, object_colours) {
         (Some(ic), Some(oc)) => {
-            let (raw, refined) = detection_masks(d, pyr, &params.refine, shape);
+            let masks = s.masks(d)?;
             score += colour_term(
                 params.colour_weight,
-                colour_agreement(&pyr.image, &refined, oc, ic),
+                colour_agreement(&pyr.image, &masks.1, oc, ic),
             );
-            Some((raw, refined))
+            Some(masks)
         }
         _ => None,
     };
@@ -497,16 +563,19 @@ fn detection_json(
     if score < params.threshold {
         return Ok(None);
     }
-    let (raw, refined) = if opts.masks == MaskMode::None {
-        (None, None)
+    let (raw, refined, visible_fraction) = if opts.masks == MaskMode::None {
+        (None, None, d.visible_fraction)
     } else {
-        let (raw, refined) =
-            masks.unwrap_or_else(|| detection_masks(d, pyr, &params.refine, shape));
+        let (raw, refined, visible) = match masks {
+            Some(m) => m,
+            None => s.masks(d)?,
+        };
         let want_raw = matches!(opts.masks, MaskMode::Raw | MaskMode::Both);
         let want_refined = matches!(opts.masks, MaskMode::Refined | MaskMode::Both);
         (
             want_raw.then(|| raw.to_rle()),
             want_refined.then(|| refined.to_rle()),
+            visible,
         )
     };
     // The template's window, corrected where the model learned how.
@@ -524,7 +593,7 @@ fn detection_json(
         viewpoint: d.viewpoint,
         view: m.viewpoints[d.viewpoint].views.first().cloned(),
         level: d.level,
-        visible_fraction: d.visible_fraction,
+        visible_fraction,
         truncated: d.truncated,
         mask: refined,
         raw_mask: raw,

@@ -389,6 +389,7 @@ pub fn hand_model(
             views: Vec::new(),
         }],
         box_correction: None,
+        segmenter: None,
         provenance: serde_json::json!({
             "source": "hand-built from the HOG of a synthetic object (no training)",
             "object_seed": obj.seed,

@@ -641,3 +641,66 @@ fn the_fast_pyramid_finds_what_the_exact_one_finds() {
         assert!(box_iou(b.bbox, s.truth_box) >= 0.6);
     }
 }
+
+/// Both kinds per object: a model with a segmenter answers its own
+/// detections (scores, boxes, components) with the masks of the
+/// segmenter's best location whose box overlaps each by
+/// `SEGMENTER_MIN_IOU` or more, or its own masks where none does.
+#[test]
+fn a_segmenter_places_and_segments_each_detection() {
+    use sdhop::model::SEGMENTER_MIN_IOU;
+    use sdhop::vision::detect::detection_masks;
+    let hog = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    // The finder: the same weights on learned cells (what they find does
+    // not matter here, only how its detections are segmented).
+    let mut finder = hog.clone();
+    finder.meta.pyramid.features = FeatureKind::Cnn;
+    finder.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    finder.meta.detection.threshold = -1e6;
+    let paired = finder.clone().with_segmenter(hog.clone()).unwrap();
+    let opts = DetectOptions {
+        max_detections: Some(4),
+        masks: MaskMode::Both,
+        ..DetectOptions::default()
+    };
+    let detector = Detector::new(&hog.views).unwrap();
+    let (mut segmented, mut differ) = (0, 0);
+    for s in scenes(2) {
+        let alone = detect_image(&s.image, &[&finder], &opts).unwrap();
+        let both = detect_image(&s.image, &[&paired], &opts).unwrap();
+        assert_eq!(alone.detections.len(), 4);
+        assert_eq!(alone.detections.len(), both.detections.len());
+        let pyr =
+            FeaturePyramid::build(&s.image, &hog.meta.pyramid, &hog.meta.segmentation).unwrap();
+        for (a, b) in alone.detections.iter().zip(&both.detections) {
+            assert_eq!(
+                (a.score, a.bbox, a.viewpoint, a.level),
+                (b.score, b.bbox, b.viewpoint, b.level)
+            );
+            let target = (a.bbox.x, a.bbox.y, a.bbox.width, a.bbox.height);
+            let near = detector.best_near(
+                &pyr,
+                target,
+                SEGMENTER_MIN_IOU,
+                hog.meta.detection.max_truncation,
+            );
+            match near {
+                Some(n) => {
+                    let shape = hog.shapes[n.viewpoint].as_ref();
+                    let (raw, refined) =
+                        detection_masks(&n, &pyr, &hog.meta.detection.refine, shape);
+                    assert_eq!(b.mask, Some(refined.to_rle()));
+                    assert_eq!(b.raw_mask, Some(raw.to_rle()));
+                    assert_eq!(b.visible_fraction, n.visible_fraction);
+                    segmented += 1;
+                    differ += usize::from(a.mask != b.mask);
+                }
+                None => assert_eq!((&a.mask, &a.raw_mask), (&b.mask, &b.raw_mask)),
+            }
+        }
+    }
+    assert!(
+        segmented > 0 && differ > 0,
+        "{segmented} segmented, {differ} differ"
+    );
+}

@@ -260,6 +260,40 @@ fn training_cli_refuses_bad_input_with_status_2() {
     assert!(err.contains("bad.json"), "{err}");
     let (code, _) = run(&["cv", "--ko8", missing.to_str().unwrap(), "--folds", "1"]);
     assert_eq!(code, Some(2));
+    // A segmenter on the models' own cells, or on a route that trains
+    // none.
+    let ko8 = missing.to_str().unwrap();
+    for args in [
+        &["train", "--ko8", ko8, "--segmenter", "hog"][..],
+        &[
+            "cv",
+            "--ko8",
+            ko8,
+            "--features",
+            "cnn",
+            "--segmenter",
+            "cnn",
+        ],
+    ] {
+        let (code, err) = run(args);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(err.contains("a segmenter uses the other kind"), "{err}");
+    }
+    let coco = dir.join("labels.json");
+    std::fs::write(&coco, "{}").unwrap();
+    let (code, err) = run(&[
+        "train",
+        "--coco",
+        coco.to_str().unwrap(),
+        "--images",
+        dir.to_str().unwrap(),
+        "--category",
+        "cup",
+        "--segmenter",
+        "hog",
+    ]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("does not train segmenters"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -781,5 +815,88 @@ fn join_cli_appends_components_and_refuses_bad_input() {
         ],
         "--max-time-ratio",
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn pair_cli_gives_each_model_its_segmenter_and_refuses_bad_input() {
+    let bin = env!("CARGO_BIN_EXE_sdhop-train");
+    let dir = std::env::temp_dir().join(format!("sdhop-pair-{}", std::process::id()));
+    let (finders, segs, out) = (dir.join("finders"), dir.join("segs"), dir.join("out"));
+    for d in [&finders, &segs] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    let hp = HandModelParams::default();
+    let hog = hand_model(&OBJECT, "obj", true, &hp).unwrap();
+    let mut cnn = hog.clone();
+    cnn.meta.pyramid.features = FeatureKind::Cnn;
+    cnn.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    cnn.save(&finders.join("obj.safetensors")).unwrap();
+    hog.save(&segs.join("obj.safetensors")).unwrap();
+    let run = |args: &[&std::path::Path], out: &std::path::Path| {
+        let o = std::process::Command::new(bin)
+            .arg("pair")
+            .args(args)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap();
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stdout).into_owned(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    };
+    let (code, stdout, stderr) = run(&[&finders, &segs], &out);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stdout.contains("segmented by obj (hog cells)"), "{stdout}");
+    let paired = Model::load(&out.join("obj.safetensors")).unwrap();
+    assert_eq!(paired.segmenter.as_deref(), Some(&hog));
+    assert_eq!(paired.clone().without_segmenter(), cnn);
+    // Without a second folder: the segmenters given up.
+    let bare = dir.join("bare");
+    let (code, _, stderr) = run(&[&out], &bare);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert_eq!(Model::load(&bare.join("obj.safetensors")).unwrap(), cnn);
+    // Extracted: the segmenters alone; a model without one is refused.
+    let extracted = dir.join("extracted");
+    let o = std::process::Command::new(bin)
+        .args(["pair", "--extract", "--out"])
+        .arg(&extracted)
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0));
+    assert_eq!(
+        Model::load(&extracted.join("obj.safetensors")).unwrap(),
+        hog
+    );
+    let o = std::process::Command::new(bin)
+        .args(["pair", "--extract", "--out"])
+        .arg(dir.join("r0"))
+        .arg(&bare)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("has no segmenter"));
+    // Refusals with status 2, naming the cause: a segmenter on the same
+    // cells, none for an object, no models at all.
+    let (code, _, stderr) = run(&[&finders, &finders], &dir.join("r1"));
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("other kind"), "{stderr}");
+    let other = dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    hand_model(&OBJECT, "pitcher", true, &hp)
+        .unwrap()
+        .save(&other.join("pitcher.safetensors"))
+        .unwrap();
+    let (code, _, stderr) = run(&[&finders, &other], &dir.join("r2"));
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("no segmenter"), "{stderr}");
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let (code, _, stderr) = run(&[&empty, &segs], &dir.join("r3"));
+    assert_eq!(code, Some(2), "{stderr}");
+    assert!(stderr.contains("no *.safetensors"), "{stderr}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -25,13 +25,8 @@ impl Backend for CpuBackend {
         batch
             .par_iter()
             .map(|job| {
-                job.settings
-                    .iter()
-                    .map(|(p, s)| {
-                        FeaturePyramid::build_shared(job.image, p, s, job.deadline)
-                            .map_err(BackendError::from)
-                    })
-                    .collect()
+                FeaturePyramid::build_all(job.image, job.settings, job.deadline)
+                    .map_err(BackendError::from)
             })
             .collect()
     }

@@ -14,6 +14,7 @@ mod detect;
 mod eval;
 mod join;
 mod mesh;
+mod pair;
 mod pose;
 mod pose_bench;
 mod pose_data;
@@ -50,6 +51,7 @@ use detect::*;
 use eval::*;
 use join::*;
 use mesh::*;
+use pair::*;
 use pose::*;
 use pose_bench::*;
 use pose_data::*;
@@ -85,6 +87,10 @@ pub(crate) enum Command {
     /// it trained apart (single-pose with view components), their scores
     /// moved by an offset.
     Join(JoinArgs),
+    /// Both kinds per object: each model of a folder (learned cells) with
+    /// the model of the same object from another folder (HOG) as the
+    /// segmenter that places and segments its detections.
+    Pair(PairArgs),
     /// Detect objects in one image; prints the detection JSON of `POST /detect`.
     Detect(DetectArgs),
     /// Refine an object's 3-D pose from an image and its mesh (OR-IRLS with
@@ -215,6 +221,7 @@ pub fn main() -> ExitCode {
         Command::Annotate(a) => run_annotate(a),
         Command::Upgrade(a) => run_upgrade(a),
         Command::Join(a) => run_join(a),
+        Command::Pair(a) => run_pair(a),
         Command::Detect(a) => run_detect(a),
         Command::Pose(a) => run_pose(a),
         Command::PoseData(a) => run_pose_data(a),

@@ -133,6 +133,10 @@ pub struct ModelInfo {
     pub size_bytes: u64,
     /// What its cells are: `hog` or `cnn` (learned).
     pub features: &'static str,
+    /// The cells of the model that segments its detections (`hog` beside
+    /// learned cells: both kinds per object), if it has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub segmenter_features: Option<&'static str>,
     /// Default detection threshold.
     pub threshold: f64,
     /// How the reported boxes are corrected from the template's window, if
@@ -163,6 +167,11 @@ pub async fn models(State(state): State<Arc<AppState>>) -> Json<Vec<ModelInfo>> 
                     sha256: m.sha256.clone(),
                     size_bytes: m.size_bytes,
                     features: meta.pyramid.features.name(),
+                    segmenter_features: m
+                        .model
+                        .segmenter
+                        .as_ref()
+                        .map(|s| s.meta.pyramid.features.name()),
                     threshold: meta.detection.threshold,
                     box_correction: meta.box_correction,
                     training: training_figures(&meta.provenance),

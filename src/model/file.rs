@@ -54,7 +54,150 @@ fn strip(padded: &[f32]) -> impl Iterator<Item = f32> + '_ {
         .flat_map(|c| c[..HOG_DIM].iter().copied())
 }
 
+/// Appends the tensors of `views` and `shapes`, their names prefixed.
+fn push_parts(
+    buffers: &mut Vec<(String, Vec<usize>, Vec<u8>)>,
+    prefix: &str,
+    views: &[ViewWeights],
+    shapes: &[Option<ShapeModel>],
+) {
+    for (a, w) in views.iter().enumerate() {
+        let (r, c) = (w.rows, w.cols);
+        let mut push = |name: &str, shape: Vec<usize>, data: Vec<u8>| {
+            buffers.push((format!("{prefix}view{a}.{name}"), shape, data));
+        };
+        push("w_vis", vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_vis)));
+        push("w_occ", vec![r, c, HOG_DIM], f32_bytes(strip(&w.w_occ)));
+        push("w_prior", vec![r, c], f32_bytes(w.w_prior.iter().copied()));
+        push(
+            "w_hop",
+            vec![w.w_hop.len()],
+            f32_bytes(w.w_hop.iter().copied()),
+        );
+        push(
+            "scalars",
+            vec![3],
+            f32_bytes([w.w_trunc, w.w_pair, w.bias].into_iter()),
+        );
+        if let Some(Some(s)) = shapes.get(a) {
+            push(
+                "shape",
+                vec![s.height, s.width],
+                f32_bytes(s.prob.iter().copied()),
+            );
+            if let Some(c) = &s.colours {
+                push("colours", vec![c.len()], f32_bytes(c.iter().copied()));
+            }
+        }
+    }
+}
+
+/// An `F32` tensor of the expected shape, as numbers.
+fn read_tensor(st: &SafeTensors, name: &str, expected: Vec<usize>) -> Result<Vec<f32>, ModelError> {
+    let t = st
+        .tensor(name)
+        .map_err(|_| ModelError::MissingTensor(name.to_string()))?;
+    if t.dtype() != Dtype::F32 || t.shape() != expected.as_slice() {
+        return Err(ModelError::Shape {
+            name: name.to_string(),
+            dtype: format!("{:?}", t.dtype()),
+            shape: t.shape().to_vec(),
+            expected,
+        });
+    }
+    Ok(t.data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect())
+}
+
+/// The weights and shape models `meta` describes, from the tensors whose
+/// names start with `prefix`.
+#[allow(clippy::type_complexity)]
+fn read_parts(
+    st: &SafeTensors,
+    meta: &ModelMeta,
+    prefix: &str,
+) -> Result<(Vec<ViewWeights>, Vec<Option<ShapeModel>>), ModelError> {
+    let read =
+        |name: &str, expected: Vec<usize>| read_tensor(st, &format!("{prefix}{name}"), expected);
+    let k = meta.hop_k;
+    let mut views = Vec::with_capacity(meta.viewpoints.len());
+    for (a, vm) in meta.viewpoints.iter().enumerate() {
+        let (r, c) = (vm.rows, vm.cols);
+        if r == 0 || c == 0 || r > MAX_TEMPLATE_CELLS || c > MAX_TEMPLATE_CELLS {
+            return Err(ModelError::Invalid(format!(
+                "viewpoint {a}: template {r}x{c} cells out of range"
+            )));
+        }
+        let pad = |v: Vec<f32>| -> Vec<f32> {
+            v.chunks(HOG_DIM)
+                .flat_map(|cell| cell.iter().copied().chain(std::iter::once(0.0)))
+                .collect()
+        };
+        let w_vis = pad(read(&format!("view{a}.w_vis"), vec![r, c, HOG_DIM])?);
+        let w_occ = pad(read(&format!("view{a}.w_occ"), vec![r, c, HOG_DIM])?);
+        let w_prior = read(&format!("view{a}.w_prior"), vec![r, c])?;
+        let w_hop = read(&format!("view{a}.w_hop"), vec![k + 1])?;
+        let s = read(&format!("view{a}.scalars"), vec![3])?;
+        views.push(ViewWeights {
+            rows: r,
+            cols: c,
+            w_vis,
+            w_occ,
+            w_prior,
+            w_trunc: s[0],
+            w_pair: s[1],
+            pair_mode: meta.pairwise,
+            w_hop,
+            bias: s[2],
+        });
+    }
+    let mut shapes = Vec::with_capacity(views.len());
+    for (a, vm) in meta.viewpoints.iter().enumerate() {
+        let name = format!("view{a}.shape");
+        let (sw, sh) = (
+            vm.cols.saturating_mul(meta.cell_size),
+            vm.rows.saturating_mul(meta.cell_size),
+        );
+        shapes.push(if st.tensor(&format!("{prefix}{name}")).is_ok() {
+            let colours_name = format!("view{a}.colours");
+            let colours = if st.tensor(&format!("{prefix}{colours_name}")).is_ok() {
+                Some(read(&colours_name, vec![COLOUR_BINS.pow(3)])?)
+            } else {
+                None
+            };
+            Some(ShapeModel {
+                width: sw,
+                height: sh,
+                prob: read(&name, vec![sh, sw])?,
+                colours,
+            })
+        } else {
+            None
+        });
+    }
+    Ok((views, shapes))
+}
+
 impl Model {
+    /// This model as format `version` writes it (its segmenter's too),
+    /// checked.
+    fn as_version(&self, version: u32) -> Result<Model, ModelError> {
+        let segmenter = match &self.segmenter {
+            Some(seg) => {
+                let mut meta = seg.meta.clone();
+                meta.format_version = version;
+                Some(Model::checked(meta, seg.views.clone(), seg.shapes.clone())?)
+            }
+            None => None,
+        };
+        let mut meta = self.meta.clone();
+        meta.format_version = version;
+        meta.segmenter = segmenter.as_ref().map(|s| Box::new(s.meta.clone()));
+        Model::assembled(meta, self.views.clone(), self.shapes.clone(), segmenter)
+    }
+
     /// Serialises to safetensors bytes of the current format, with the
     /// digest of the contents.
     pub fn to_bytes(&self) -> Result<Vec<u8>, ModelError> {
@@ -65,51 +208,12 @@ impl Model {
     /// [`DIGEST_FORMAT_VERSION`] on; older versions only for tests of
     /// their refusal and upgrade).
     pub(super) fn serialize(&self, version: u32) -> Result<Vec<u8>, ModelError> {
-        let mut meta = self.meta.clone();
-        meta.format_version = version;
-        Model::checked(meta.clone(), self.views.clone(), self.shapes.clone())?;
+        let checked = self.as_version(version)?;
+        let meta = checked.meta;
         let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
-        for (a, w) in self.views.iter().enumerate() {
-            let (r, c) = (w.rows, w.cols);
-            buffers.push((
-                format!("view{a}.w_vis"),
-                vec![r, c, HOG_DIM],
-                f32_bytes(strip(&w.w_vis)),
-            ));
-            buffers.push((
-                format!("view{a}.w_occ"),
-                vec![r, c, HOG_DIM],
-                f32_bytes(strip(&w.w_occ)),
-            ));
-            buffers.push((
-                format!("view{a}.w_prior"),
-                vec![r, c],
-                f32_bytes(w.w_prior.iter().copied()),
-            ));
-            buffers.push((
-                format!("view{a}.w_hop"),
-                vec![w.w_hop.len()],
-                f32_bytes(w.w_hop.iter().copied()),
-            ));
-            buffers.push((
-                format!("view{a}.scalars"),
-                vec![3],
-                f32_bytes([w.w_trunc, w.w_pair, w.bias].into_iter()),
-            ));
-            if let Some(Some(s)) = self.shapes.get(a) {
-                buffers.push((
-                    format!("view{a}.shape"),
-                    vec![s.height, s.width],
-                    f32_bytes(s.prob.iter().copied()),
-                ));
-                if let Some(c) = &s.colours {
-                    buffers.push((
-                        format!("view{a}.colours"),
-                        vec![c.len()],
-                        f32_bytes(c.iter().copied()),
-                    ));
-                }
-            }
+        push_parts(&mut buffers, "", &self.views, &self.shapes);
+        if let Some(seg) = &self.segmenter {
+            push_parts(&mut buffers, SEGMENTER_PREFIX, &seg.views, &seg.shapes);
         }
         let meta = serde_json::to_string(&meta).map_err(|e| ModelError::Meta(e.to_string()))?;
         let mut info = HashMap::from([(META_KEY.to_string(), meta.clone())]);
@@ -186,80 +290,15 @@ impl Model {
                 found: meta.format_version,
             });
         }
-        let read = |name: &str, expected: Vec<usize>| -> Result<Vec<f32>, ModelError> {
-            let t = st
-                .tensor(name)
-                .map_err(|_| ModelError::MissingTensor(name.to_string()))?;
-            if t.dtype() != Dtype::F32 || t.shape() != expected.as_slice() {
-                return Err(ModelError::Shape {
-                    name: name.to_string(),
-                    dtype: format!("{:?}", t.dtype()),
-                    shape: t.shape().to_vec(),
-                    expected,
-                });
+        let (views, shapes) = read_parts(&st, &meta, "")?;
+        let segmenter = match &meta.segmenter {
+            Some(sm) => {
+                let (views, shapes) = read_parts(&st, sm, SEGMENTER_PREFIX)?;
+                Some(Self::checked((**sm).clone(), views, shapes)?)
             }
-            Ok(t.data()
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect())
+            None => None,
         };
-        let k = meta.hop_k;
-        let mut views = Vec::with_capacity(meta.viewpoints.len());
-        for (a, vm) in meta.viewpoints.iter().enumerate() {
-            let (r, c) = (vm.rows, vm.cols);
-            if r == 0 || c == 0 || r > MAX_TEMPLATE_CELLS || c > MAX_TEMPLATE_CELLS {
-                return Err(ModelError::Invalid(format!(
-                    "viewpoint {a}: template {r}x{c} cells out of range"
-                )));
-            }
-            let pad = |v: Vec<f32>| -> Vec<f32> {
-                v.chunks(HOG_DIM)
-                    .flat_map(|cell| cell.iter().copied().chain(std::iter::once(0.0)))
-                    .collect()
-            };
-            let w_vis = pad(read(&format!("view{a}.w_vis"), vec![r, c, HOG_DIM])?);
-            let w_occ = pad(read(&format!("view{a}.w_occ"), vec![r, c, HOG_DIM])?);
-            let w_prior = read(&format!("view{a}.w_prior"), vec![r, c])?;
-            let w_hop = read(&format!("view{a}.w_hop"), vec![k + 1])?;
-            let s = read(&format!("view{a}.scalars"), vec![3])?;
-            views.push(ViewWeights {
-                rows: r,
-                cols: c,
-                w_vis,
-                w_occ,
-                w_prior,
-                w_trunc: s[0],
-                w_pair: s[1],
-                pair_mode: meta.pairwise,
-                w_hop,
-                bias: s[2],
-            });
-        }
-        let mut shapes = Vec::with_capacity(views.len());
-        for (a, vm) in meta.viewpoints.iter().enumerate() {
-            let name = format!("view{a}.shape");
-            let (sw, sh) = (
-                vm.cols.saturating_mul(meta.cell_size),
-                vm.rows.saturating_mul(meta.cell_size),
-            );
-            shapes.push(if st.tensor(&name).is_ok() {
-                let colours_name = format!("view{a}.colours");
-                let colours = if st.tensor(&colours_name).is_ok() {
-                    Some(read(&colours_name, vec![COLOUR_BINS.pow(3)])?)
-                } else {
-                    None
-                };
-                Some(ShapeModel {
-                    width: sw,
-                    height: sh,
-                    prob: read(&name, vec![sh, sw])?,
-                    colours,
-                })
-            } else {
-                None
-            });
-        }
-        Self::checked(meta, views, shapes)
+        Self::assembled(meta, views, shapes, segmenter)
     }
 
     /// Writes the model to a file (atomically: a temporary file is renamed).

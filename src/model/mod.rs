@@ -8,7 +8,10 @@
 //! where the trainer learned one, `view{a}.shape` (`rows` times
 //! `cell_size` by `cols` times `cell_size`): the viewpoint's pixel shape
 //! model ([`crate::vision::shape`]), and `view{a}.colours` `[4096]`: the
-//! object's colour histogram from the training images.
+//! object's colour histogram from the training images. A model with a
+//! segmenter ([`Model::segmenter`]) also holds the segmenter's tensors,
+//! named as above with the prefix [`SEGMENTER_PREFIX`], and its
+//! description under `segmenter` in the metadata JSON.
 //!
 //! The safetensors metadata holds two keys: `sdhop`, whose value is the
 //! JSON of [`ModelMeta`], and from format 3 on `sdhop.sha256`, the SHA-256
@@ -45,6 +48,13 @@ pub const META_KEY: &str = "sdhop";
 pub const DIGEST_KEY: &str = "sdhop.sha256";
 /// Largest template side in cells a file may declare.
 pub const MAX_TEMPLATE_CELLS: usize = 256;
+/// Least overlap (intersection over union) between a detection's box and
+/// the box of the segmenter's location that segments it
+/// ([`Model::segmenter`]); at 0.7 the masks came out a little worse
+/// (`docs/benchmarks.md`, 2026-11-30).
+pub const SEGMENTER_MIN_IOU: f64 = 0.5;
+/// Tensor name prefix of the segmenter's weights in a file.
+pub const SEGMENTER_PREFIX: &str = "segmenter.";
 
 /// Errors reading or writing a weights file.
 #[derive(Debug, Error)]
@@ -183,6 +193,10 @@ pub struct ModelMeta {
     /// Free-form provenance: how the weights were made, settings, figures.
     #[serde(default)]
     pub provenance: serde_json::Value,
+    /// The description of the model that segments this one's detections
+    /// ([`Model::segmenter`]), where it has one; always that model's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub segmenter: Option<Box<ModelMeta>>,
 }
 
 /// A model: metadata, one weight set per viewpoint, and per viewpoint its
@@ -192,6 +206,14 @@ pub struct Model {
     pub meta: ModelMeta,
     pub views: Vec<ViewWeights>,
     pub shapes: Vec<Option<ShapeModel>>,
+    /// "Both kinds per object": a model of the same object on other cells
+    /// (HOG beside learned cells) that places and segments each of this
+    /// model's detections: its best location whose box overlaps the
+    /// detection's by [`SEGMENTER_MIN_IOU`] or more gives the masks, while
+    /// the score and the box stay this model's. Learned cells find the
+    /// kitchen objects better and HOG segments them better (issue 63,
+    /// `docs/benchmarks.md` 2026-11-30). Set with [`Model::with_segmenter`].
+    pub segmenter: Option<Box<Model>>,
     /// Stage 1's low-rank bound of `views`, built on first use (see
     /// [`Model::low_rank`]).
     low_rank: LowRankCache,
@@ -231,14 +253,43 @@ impl Model {
         views: Vec<ViewWeights>,
         shapes: Vec<Option<ShapeModel>>,
     ) -> Result<Self, ModelError> {
+        Self::assembled(meta, views, shapes, None)
+    }
+
+    /// The model of these parts and this segmenter, checked.
+    fn assembled(
+        meta: ModelMeta,
+        views: Vec<ViewWeights>,
+        shapes: Vec<Option<ShapeModel>>,
+        segmenter: Option<Model>,
+    ) -> Result<Self, ModelError> {
         let m = Self {
             meta,
             views,
             shapes,
+            segmenter: segmenter.map(Box::new),
             low_rank: LowRankCache::default(),
         };
         m.validate()?;
         Ok(m)
+    }
+
+    /// This model with `segmenter` placing and segmenting its detections
+    /// ([`Model::segmenter`]): a model of the same object labels on other
+    /// cells, without a segmenter of its own. Its description is kept in
+    /// this model's metadata (`segmenter`), so the file carries both.
+    pub fn with_segmenter(mut self, segmenter: Model) -> Result<Self, ModelError> {
+        self.meta.segmenter = Some(Box::new(segmenter.meta.clone()));
+        self.segmenter = Some(Box::new(segmenter));
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// This model without a segmenter.
+    pub fn without_segmenter(mut self) -> Self {
+        self.meta.segmenter = None;
+        self.segmenter = None;
+        self
     }
 
     /// The model with these shape models (one per viewpoint); the file it
@@ -379,7 +430,45 @@ impl Model {
         }
         m.segmentation.validate()?;
         m.detection.validate()?;
-        Ok(())
+        self.validate_segmenter()
+    }
+
+    /// The segmenter's own checks, and that it fits this model: described
+    /// in the metadata as it is, of the same objects, on other cells, with
+    /// no segmenter of its own.
+    fn validate_segmenter(&self) -> Result<(), ModelError> {
+        let described = self.meta.segmenter.as_deref();
+        let Some(seg) = self.segmenter.as_deref() else {
+            return match described {
+                None => Ok(()),
+                Some(_) => Err(ModelError::Invalid(
+                    "the metadata describes a segmenter the model lacks".into(),
+                )),
+            };
+        };
+        if described != Some(&seg.meta) {
+            return Err(ModelError::Invalid(
+                "the metadata's segmenter is not the model's".into(),
+            ));
+        }
+        if seg.segmenter.is_some() {
+            return Err(ModelError::Invalid(
+                "a segmenter cannot have a segmenter of its own".into(),
+            ));
+        }
+        if seg.labels() != self.labels() {
+            return Err(ModelError::Invalid(format!(
+                "the segmenter finds {:?}, the model {:?}: they must be models of the same objects",
+                seg.labels(),
+                self.labels()
+            )));
+        }
+        if seg.meta.pyramid.features == self.meta.pyramid.features {
+            return Err(ModelError::Invalid(
+                "the segmenter uses the model's own cells; it must use the other kind".into(),
+            ));
+        }
+        seg.validate()
     }
 
     /// Sets the pixel refinement to this build's for the model's cells
@@ -464,7 +553,14 @@ impl Model {
         }));
         let mut shapes = self.shapes.clone();
         shapes.extend(other.shapes.iter().cloned());
-        Self::checked(meta, views, shapes)
+        // The base's segmenter segments the joined components' detections
+        // too.
+        meta.segmenter = None;
+        let joined = Self::checked(meta, views, shapes)?;
+        match &self.segmenter {
+            Some(seg) => joined.with_segmenter((**seg).clone()),
+            None => Ok(joined),
+        }
     }
 }
 
@@ -473,6 +569,34 @@ pub use file::content_digest;
 
 #[cfg(test)]
 mod tests;
+
+/// Each of `models` with the one of `segmenters` that finds the same
+/// objects as its segmenter ([`Model::with_segmenter`]); a model without
+/// one, or with several, is an error.
+pub fn with_segmenters(
+    models: Vec<Model>,
+    segmenters: Vec<Model>,
+) -> Result<Vec<Model>, ModelError> {
+    models
+        .into_iter()
+        .map(|m| {
+            let mut same = segmenters.iter().filter(|s| s.labels() == m.labels());
+            match (same.next(), same.next()) {
+                (Some(s), None) => m.with_segmenter(s.clone()),
+                (None, _) => Err(ModelError::Invalid(format!(
+                    "no segmenter of {:?} for model {}",
+                    m.labels(),
+                    m.meta.name
+                ))),
+                (Some(_), Some(_)) => Err(ModelError::Invalid(format!(
+                    "several segmenters of {:?} for model {}",
+                    m.labels(),
+                    m.meta.name
+                ))),
+            }
+        })
+        .collect()
+}
 
 /// The `*.safetensors` files of a folder, sorted by name.
 pub fn model_paths(dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>, ModelError> {

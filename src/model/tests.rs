@@ -85,6 +85,7 @@ fn sample() -> Model {
         }],
         box_correction: None,
         provenance: serde_json::json!({"made_by": "test"}),
+        segmenter: None,
     };
     Model::new(meta, vec![w]).unwrap()
 }
@@ -405,4 +406,89 @@ fn a_models_refinement_is_set_to_this_builds_and_the_old_kept() {
     assert_eq!(m.meta.provenance["refine_set"].as_array().unwrap().len(), 1);
     // It round-trips through its file.
     assert_eq!(Model::from_bytes(&m.to_bytes().unwrap()).unwrap(), m);
+}
+
+/// [`sample`] on learned cells.
+fn sample_cnn() -> Model {
+    let mut cnn = sample();
+    cnn.meta.pyramid.features = FeatureKind::Cnn;
+    cnn.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    cnn.validate().unwrap();
+    cnn
+}
+
+#[test]
+fn a_segmenter_travels_in_its_models_file_and_its_digest() {
+    let mut seg = sample();
+    seg.views[0].bias = 0.25;
+    seg.meta.provenance = serde_json::json!({"made_by": "the segmenter"});
+    let m = sample_cnn().with_segmenter(seg.clone()).unwrap();
+    assert_eq!(m.meta.segmenter.as_deref(), Some(&seg.meta));
+    let bytes = m.to_bytes().unwrap();
+    let back = Model::from_bytes(&bytes).unwrap();
+    assert_eq!(back, m);
+    assert_eq!(back.segmenter.as_deref(), Some(&seg));
+    // Its tensors are the file's, under their prefix, and the digest
+    // covers them: one changed byte of the segmenter's weights is refused.
+    let (n, header) = header_of(&bytes);
+    let name = format!("{SEGMENTER_PREFIX}view0.scalars");
+    let at = header[name.as_str()]["data_offsets"][0].as_u64().unwrap() as usize;
+    let mut changed = bytes.clone();
+    changed[8 + n + at] ^= 0x01;
+    assert!(matches!(
+        Model::from_bytes(&changed),
+        Err(ModelError::Digest { .. })
+    ));
+    // A file whose metadata describes a segmenter whose tensors are not
+    // there, the digest recomputed by a careful forger: refused, naming
+    // the tensor.
+    let plain = sample_cnn().to_bytes().unwrap();
+    let seg_meta = serde_json::to_value(&seg.meta).unwrap();
+    let described = edit_meta(&plain, true, |meta| meta["segmenter"] = seg_meta.clone());
+    let err = Model::from_bytes(&described).unwrap_err();
+    assert!(
+        matches!(err, ModelError::MissingTensor(ref t) if t.starts_with(SEGMENTER_PREFIX)),
+        "{err}"
+    );
+    // Joined with components, the model keeps its segmenter; given up,
+    // it is the model without one.
+    let joined = m.joined(&sample_cnn(), 0.5).unwrap();
+    assert_eq!(joined.segmenter.as_deref(), Some(&seg));
+    assert_eq!(
+        Model::from_bytes(&joined.to_bytes().unwrap()).unwrap(),
+        joined
+    );
+    assert_eq!(m.without_segmenter(), sample_cnn());
+}
+
+#[test]
+fn a_segmenter_must_fit_its_model() {
+    let cnn = sample_cnn();
+    // On the model's own cells.
+    let err = cnn.clone().with_segmenter(sample_cnn()).unwrap_err();
+    assert!(err.to_string().contains("other kind"), "{err}");
+    // Of another object.
+    let mut other = sample();
+    other.meta.viewpoints[0].label = "pitcher".into();
+    let err = cnn.clone().with_segmenter(other.clone()).unwrap_err();
+    assert!(err.to_string().contains("same objects"), "{err}");
+    // With a segmenter of its own.
+    let nested = sample().with_segmenter(sample_cnn()).unwrap();
+    let err = cnn.clone().with_segmenter(nested).unwrap_err();
+    assert!(err.to_string().contains("of its own"), "{err}");
+    // Metadata and model disagreeing.
+    let mut m = cnn.clone().with_segmenter(sample()).unwrap();
+    m.meta.segmenter = None;
+    assert!(matches!(m.validate(), Err(ModelError::Invalid(_))));
+    let mut m = cnn.clone();
+    m.meta.segmenter = Some(Box::new(sample().meta));
+    assert!(matches!(m.validate(), Err(ModelError::Invalid(_))));
+    // Pairing folders: each model takes the segmenter of its objects, and
+    // one without, or with two, is an error naming it.
+    let paired = with_segmenters(vec![cnn.clone()], vec![other.clone(), sample()]).unwrap();
+    assert_eq!(paired[0].segmenter.as_deref(), Some(&sample()));
+    let err = with_segmenters(vec![cnn.clone()], vec![other]).unwrap_err();
+    assert!(err.to_string().contains("no segmenter"), "{err}");
+    let err = with_segmenters(vec![cnn], vec![sample(), sample()]).unwrap_err();
+    assert!(err.to_string().contains("several"), "{err}");
 }

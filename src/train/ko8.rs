@@ -472,7 +472,9 @@ pub fn write_fold_file(dir: &Path, fold: FoldOf) -> Result<(), TrainError> {
     })
 }
 
-/// The models of fold `f`, trained or loaded.
+/// The models of fold `f`, trained or loaded; trained with their
+/// segmenters where `segmenter` gives the segmenters' settings and cache.
+#[allow(clippy::too_many_arguments)]
 fn fold_models(
     data: &Ko8Data,
     fold: (usize, usize),
@@ -480,6 +482,7 @@ fn fold_models(
     neg: &NegativeSet,
     cache: &PyramidCache,
     source: FoldModels,
+    segmenter: Option<(&TrainParams, &PyramidCache)>,
 ) -> Result<Vec<(Model, Option<TrainReport>)>, TrainError> {
     if let FoldModels::Load(dir) = source {
         return data
@@ -503,7 +506,16 @@ fn fold_models(
             })
             .collect();
     }
-    let trained = train_objects(data, Some(fold), params, neg, cache)?;
+    let mut trained = train_objects(data, Some(fold), params, neg, cache)?;
+    if let Some((sp, seg_cache)) = segmenter {
+        let segs = train_objects(data, Some(fold), sp, neg, seg_cache)?;
+        let (models, reports): (Vec<Model>, Vec<TrainReport>) = trained.into_iter().unzip();
+        let segs = segs.into_iter().map(|(m, _)| m).collect();
+        trained = crate::model::with_segmenters(models, segs)?
+            .into_iter()
+            .zip(reports)
+            .collect();
+    }
     if let FoldModels::TrainAndSave(dir) = source {
         let d = fold_dir(dir, fold.0);
         std::fs::create_dir_all(&d).map_err(|source| TrainError::Io {
@@ -536,12 +548,16 @@ pub fn cross_validate(
     cache: &PyramidCache,
     how: EvalDetect,
     source: FoldModels,
+    segmenter: Option<&TrainParams>,
 ) -> Result<CrossValidation, TrainError> {
     let mut images: Vec<Sample> = Vec::new();
     let mut responses = Vec::new();
     let mut reports = Vec::new();
+    // The segmenters' training pyramids (other cells than the models').
+    let seg_cache = PyramidCache::default();
+    let segmenter = segmenter.map(|p| (p, &seg_cache));
     for f in (0..folds).filter(|f| only.is_empty() || only.contains(f)) {
-        let trained = fold_models(data, (f, folds), params, neg, cache, source)?;
+        let trained = fold_models(data, (f, folds), params, neg, cache, source, segmenter)?;
         let models: Vec<&Model> = trained.iter().map(|(m, _)| m).collect();
         let held = data.fold_images(Some((f, folds)));
         let pb = progress_bar(0, "pyramids");

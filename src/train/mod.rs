@@ -524,6 +524,7 @@ fn model_meta(
             })
             .collect(),
         box_correction: None,
+        segmenter: None,
         provenance: serde_json::json!({
             "source": "sdhop-train: 1-slack structural SVM (cutting plane, clarabel dual QP)",
             "params": params,

@@ -196,6 +196,84 @@ impl FeaturePyramid {
         Self::build_keeping(img, || std::sync::Arc::clone(img), params, seg, deadline)
     }
 
+    /// The pyramid of the same image with other cell settings (`params`),
+    /// sharing this one's over-segmentation instead of computing it again:
+    /// a model's segmenter on other cells ([`crate::model::Model::segmenter`])
+    /// needs both pyramids of one photograph. Needs the pixels (not a
+    /// [`Self::lean`] pyramid).
+    pub fn build_beside(
+        &self,
+        params: &PyramidParams,
+        deadline: Deadline,
+    ) -> Result<Self, VisionError> {
+        params.validate()?;
+        if !self.has_pixels() {
+            return Err(VisionError::InvalidParameter(
+                "a pyramid without its pixels cannot build another beside it".into(),
+            ));
+        }
+        let start = Instant::now();
+        let (w, h) = (self.image_width, self.image_height);
+        let hogs = feature_levels(&self.image, params, deadline)?;
+        let features_ms = ms(start);
+        let t = Instant::now();
+        let levels = cell_levels(hogs, &self.segmentation, (w, h), deadline)?;
+        Ok(Self {
+            image_width: w,
+            image_height: h,
+            image: std::sync::Arc::clone(&self.image),
+            levels,
+            segmentation: self.segmentation.clone(),
+            timing: PyramidTiming {
+                features_ms,
+                segmentation_ms: 0.0,
+                cell_segments_ms: ms(t),
+                total_ms: ms(start),
+            },
+            params: *params,
+            seg_params: self.seg_params,
+        })
+    }
+
+    /// The pyramids of `img` for each of `settings`, in order; those
+    /// whose over-segmentation settings agree share one segmentation
+    /// ([`Self::build_beside`]).
+    pub fn build_all(
+        img: &std::sync::Arc<ColorImage>,
+        settings: &[(PyramidParams, SegmentParams)],
+        deadline: Deadline,
+    ) -> Result<Vec<Self>, VisionError> {
+        let mut out: Vec<Self> = Vec::with_capacity(settings.len());
+        for (p, s) in settings {
+            let pyr = match out.iter().find(|o| o.seg_params == *s) {
+                Some(first) => first.build_beside(p, deadline)?,
+                None => Self::build_shared(img, p, s, deadline)?,
+            };
+            out.push(pyr);
+        }
+        Ok(out)
+    }
+
+    /// The pyramids of this pyramid's image for those of `settings` that
+    /// are not its own, in order, built beside it where they can be.
+    pub fn build_others(
+        &self,
+        settings: &[(PyramidParams, SegmentParams)],
+        deadline: Deadline,
+    ) -> Result<Vec<Self>, VisionError> {
+        settings
+            .iter()
+            .filter(|(p, s)| (*p, *s) != (self.params, self.seg_params))
+            .map(|(p, s)| {
+                if *s == self.seg_params {
+                    self.build_beside(p, deadline)
+                } else {
+                    Self::build_shared(&self.image, p, s, deadline)
+                }
+            })
+            .collect()
+    }
+
     /// The pyramid of `img`, which keeps the image `keep` gives once built.
     fn build_keeping(
         img: &ColorImage,
@@ -224,22 +302,7 @@ impl FeaturePyramid {
             return Err(VisionError::DeadlineExceeded);
         }
         let t = Instant::now();
-        let levels = hogs
-            .into_par_iter()
-            .map(|(lw, lh, hog)| {
-                if deadline.passed() {
-                    return Err(VisionError::DeadlineExceeded);
-                }
-                let cell_segments =
-                    segmentation.cell_labels(lw, lh, hog.width(), hog.height(), CELL_SIZE);
-                Ok(Level {
-                    scale_x: lw as f64 / w as f64,
-                    scale_y: lh as f64 / h as f64,
-                    hog,
-                    cell_segments,
-                })
-            })
-            .collect::<Result<_, _>>()?;
+        let levels = cell_levels(hogs, &segmentation, (w, h), deadline)?;
         Ok(Self {
             image_width: w,
             image_height: h,
@@ -446,6 +509,31 @@ pub fn resample_cells(
     HogMap::from_raw(cw, ch, data)
 }
 
+/// The levels of these cell maps (each with its level's size), each with
+/// its cells' segments of `segmentation` (of an image `w x h`).
+fn cell_levels(
+    hogs: Vec<(usize, usize, HogMap)>,
+    segmentation: &Segmentation,
+    (w, h): (usize, usize),
+    deadline: Deadline,
+) -> Result<Vec<Level>, VisionError> {
+    hogs.into_par_iter()
+        .map(|(lw, lh, hog)| {
+            if deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
+            let cell_segments =
+                segmentation.cell_labels(lw, lh, hog.width(), hog.height(), CELL_SIZE);
+            Ok(Level {
+                scale_x: lw as f64 / w as f64,
+                scale_y: lh as f64 / h as f64,
+                hog,
+                cell_segments,
+            })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 #[allow(clippy::needless_range_loop)]
 mod tests {
@@ -499,6 +587,38 @@ mod tests {
                 .unwrap()
                 .labels()
         );
+    }
+
+    #[test]
+    fn a_pyramid_built_beside_another_is_the_one_built_alone() {
+        let img = std::sync::Arc::new(crate::vision::image::noise_image(160, 120, 5));
+        let seg = SegmentParams::default();
+        let hog = PyramidParams::default();
+        let other = PyramidParams {
+            levels_per_octave: 3,
+            ..hog
+        };
+        let settings = [(hog, seg), (other, seg)];
+        let all = FeaturePyramid::build_all(&img, &settings, Deadline::NONE).unwrap();
+        let alone = FeaturePyramid::build(&img, &other, &seg).unwrap();
+        let beside = &all[1];
+        assert_eq!((beside.params, beside.seg_params), (other, seg));
+        assert_eq!(beside.levels.len(), alone.levels.len());
+        for (a, b) in beside.levels.iter().zip(&alone.levels) {
+            assert_eq!(a.hog, b.hog);
+            assert_eq!(a.cell_segments, b.cell_segments);
+            assert_eq!((a.scale_x, a.scale_y), (b.scale_x, b.scale_y));
+        }
+        assert_eq!(beside.segmentation.labels(), alone.segmentation.labels());
+        // The segmentation is shared, not computed again.
+        assert_eq!(beside.timing.segmentation_ms, 0.0);
+        // Only the settings that are not the pyramid's own are built.
+        let others = all[0].build_others(&settings, Deadline::NONE).unwrap();
+        assert_eq!(others.len(), 1);
+        assert_eq!(others[0].params, other);
+        // A pyramid without its pixels cannot.
+        let lean = all[0].clone().lean().unwrap();
+        assert!(lean.build_beside(&other, Deadline::NONE).is_err());
     }
 
     #[test]

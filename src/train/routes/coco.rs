@@ -61,6 +61,7 @@ pub fn train_coco(
     settings: &TrainSettings,
     mv: &MultiViewParams,
 ) -> Result<Vec<(Model, TrainReport)>, RouteError> {
+    settings.no_segmenter("train --coco")?;
     let (params, neg) = settings.params(COCO_FEATURES)?;
     let cache = PyramidCache::default();
     let extra_negatives: Vec<Sample> = match &route.negatives {

@@ -99,6 +99,7 @@ pub fn cross_validate_route(
     mut each: impl FnMut(&CResult),
 ) -> Result<CvOutcome, RouteError> {
     let (mut params, neg) = settings.params(CV_FEATURES)?;
+    let seg_params = settings.segmenter_params(&params)?;
     if s.folds < 2 {
         return Err(RouteError::input("--folds must be at least 2"));
     }
@@ -145,6 +146,7 @@ pub fn cross_validate_route(
             &cache,
             how,
             source,
+            seg_params.as_ref(),
         )
         .map_err(RouteError::input)?;
         let seconds = t.elapsed().as_secs_f64();
@@ -185,6 +187,7 @@ pub fn cross_validate_route(
                 "detect_threshold": floor,
                 "max_detections": s.max_detections,
                 "params": params,
+                "segmenter": seg_params,
                 "negatives": neg,
                 "evaluation": strip_curves(&result.evaluation),
                 "train_reports": cv.reports,

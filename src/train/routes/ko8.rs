@@ -107,6 +107,14 @@ pub fn train_ko8(
         &sources,
         settings,
     );
+    // Asked for before anything loads, so that a bad one fails at once.
+    let seg_params = settings.segmenter_params(&params)?.map(|p| {
+        views_params(
+            params_for(&p, &sources, settings.threshold.is_some()),
+            &sources,
+            settings,
+        )
+    });
     let mut data = if multi {
         Ko8Data::load(root, &[]).and_then(|d| d.with_multiview(root))
     } else {
@@ -133,17 +141,62 @@ pub fn train_ko8(
             )));
         }
     }
+    let mut out = train_data(&data, route, &sources, &params, &neg, mv, &cache)?;
+    drop(cache);
+    if let Some(sp) = seg_params {
+        eprintln!(
+            "segmenters: training on {} cells",
+            sp.pyramid.features.name()
+        );
+        let segs = train_data(
+            &data,
+            route,
+            &sources,
+            &sp,
+            &neg,
+            mv,
+            &PyramidCache::default(),
+        )?;
+        out = paired(out, segs)?;
+    }
+    for (m, _) in &mut out {
+        record_negatives(m, &neg)?;
+    }
+    Ok(out)
+}
+
+/// Each model with the segmenter of its object.
+fn paired(
+    models: Vec<(Model, TrainReport)>,
+    segmenters: Vec<(Model, TrainReport)>,
+) -> Result<Vec<(Model, TrainReport)>, RouteError> {
+    let (models, reports): (Vec<Model>, Vec<TrainReport>) = models.into_iter().unzip();
+    let segs = segmenters.into_iter().map(|(m, _)| m).collect();
+    let models = crate::model::with_segmenters(models, segs).map_err(RouteError::input)?;
+    Ok(models.into_iter().zip(reports).collect())
+}
+
+/// Trains the route's objects on loaded data with `params`.
+fn train_data(
+    data: &Ko8Data,
+    route: &Ko8Route,
+    sources: &[Source],
+    params: &crate::train::TrainParams,
+    neg: &crate::train::ko8::NegativeSet,
+    mv: &MultiViewParams,
+    cache: &PyramidCache,
+) -> Result<Vec<(Model, TrainReport)>, RouteError> {
+    let multi = sources != [Source::Single];
     let mut out = Vec::new();
     if !multi {
-        out = train_objects(&data, None, &params, &neg, &cache).map_err(RouteError::input)?;
+        out = train_objects(data, None, params, neg, cache).map_err(RouteError::input)?;
     } else {
         let chosen = (0..data.objects.len())
             .filter(|&oi| route.objects.is_empty() || route.objects.contains(&data.objects[oi]));
         for oi in chosen {
             let pb = progress_bar(0, &data.objects[oi]);
-            let (m, mut r) =
-                train_object_sources(&data, oi, &sources, &params, &neg, mv, &cache, &pb)
-                    .map_err(RouteError::input)?;
+            let (m, mut r) = train_object_sources(data, oi, sources, params, neg, mv, cache, &pb)
+                .map_err(RouteError::input)?;
             pb.finish_and_clear();
             if let Some(cv) = &r.components_cv {
                 eprintln!(
@@ -161,9 +214,6 @@ pub fn train_ko8(
             let last = r.rounds.pop().unwrap_or_default();
             out.push((m, last));
         }
-    }
-    for (m, _) in &mut out {
-        record_negatives(m, &neg)?;
     }
     Ok(out)
 }

@@ -339,6 +339,7 @@ pub fn mesh_params(s: &MeshSettings) -> Result<TrainParams, RouteError> {
     } else {
         MESH_FEATURES
     };
+    s.settings.no_segmenter("mesh")?;
     let (mut params, _) = s.settings.params(features)?;
     let st = &s.settings;
     let mesh_scales = !s.boxes_route() && st.config.is_none();

@@ -48,6 +48,16 @@ pub struct TrainSettings {
     /// development data of each).
     #[arg(long, value_parser = FeatureKind::parse)]
     pub features: Option<FeatureKind>,
+    /// Both kinds per object: also train each object's model on these
+    /// cells (`hog` beside `--features cnn`), with the same settings, and
+    /// keep it in the model's file as its segmenter: each detection is
+    /// placed and segmented by the segmenter's best location whose box
+    /// overlaps it by 0.5 or more (the score and box stay the model's).
+    /// Learned cells find better and HOG segments better (docs/training.md,
+    /// "Both kinds per object"). Training takes the segmenter's time too,
+    /// and detection its pyramid and a local search per answered detection.
+    #[arg(long, value_parser = FeatureKind::parse)]
+    pub segmenter: Option<FeatureKind>,
     /// Pyramid levels per octave.
     #[arg(long)]
     pub levels_per_octave: Option<u32>,
@@ -205,6 +215,22 @@ impl TrainSettings {
     /// The settings: the `--config` file's, then the flags'. `features` is
     /// the route's feature kind, taken where neither names one.
     pub fn params(&self, features: FeatureKind) -> Result<(TrainParams, NegativeSet), RouteError> {
+        let p = self.train_params(features)?;
+        if let Some(t) = self.threads {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build_global()
+                .map_err(RouteError::io)?;
+        }
+        let neg = NegativeSet {
+            scenes: self.negative_scenes,
+            per_other_object: self.other_negatives,
+        };
+        Ok((p, neg))
+    }
+
+    /// The training parameters of [`Self::params`].
+    fn train_params(&self, features: FeatureKind) -> Result<TrainParams, RouteError> {
         let mut p = match &self.config {
             Some(path) => {
                 let text = std::fs::read_to_string(path)
@@ -254,17 +280,42 @@ impl TrainSettings {
             p.energy.pair_mode = PairwiseMode::Edges;
         }
         p.validate().map_err(RouteError::input)?;
-        if let Some(t) = self.threads {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(t)
-                .build_global()
-                .map_err(RouteError::io)?;
+        Ok(p)
+    }
+}
+
+impl TrainSettings {
+    /// Refuses `--segmenter` on a route that does not train segmenters.
+    pub fn no_segmenter(&self, route: &str) -> Result<(), RouteError> {
+        match self.segmenter {
+            Some(_) => Err(RouteError::input(format!(
+                "--segmenter: {route} does not train segmenters (train --ko8 and cv do); pair models trained apart with `sdhop-train pair MODELS SEGMENTERS --out DIR`"
+            ))),
+            None => Ok(()),
         }
-        let neg = NegativeSet {
-            scenes: self.negative_scenes,
-            per_other_object: self.other_negatives,
+    }
+
+    /// The settings of the segmenters (`--segmenter`), where asked: those
+    /// of [`Self::params`] on the segmenter's cells. A segmenter on the
+    /// models' own cells (`main`) is refused.
+    pub fn segmenter_params(&self, main: &TrainParams) -> Result<Option<TrainParams>, RouteError> {
+        let Some(kind) = self.segmenter else {
+            return Ok(None);
         };
-        Ok((p, neg))
+        if kind == main.pyramid.features {
+            return Err(RouteError::input(format!(
+                "--segmenter {}: the models are trained on {} cells already; a segmenter uses the other kind (`--features cnn --segmenter hog`)",
+                kind.name(),
+                kind.name()
+            )));
+        }
+        let mut p = self.train_params(kind)?;
+        p.pyramid.features = kind;
+        // Learned cells' pyramids resample levels (`--computed-every`);
+        // the segmenter's cells are computed at every level.
+        p.pyramid.computed_every = 1;
+        p.validate().map_err(RouteError::input)?;
+        Ok(Some(p))
     }
 }
 
@@ -292,6 +343,7 @@ impl Default for TrainSettings {
             template_scale: None,
             template: None,
             features: None,
+            segmenter: None,
             levels_per_octave: None,
             computed_every: None,
             min_scale: None,
