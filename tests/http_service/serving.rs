@@ -411,3 +411,88 @@ async fn pose_admits_a_30_mb_mesh() {
     assert!(deg < 0.5 && mm < 2.0, "{deg:.2} deg, {mm:.2} mm");
     assert!(server.stop().await);
 }
+
+/// Both kinds per object through the service: a learned-cell model with a
+/// HOG segmenter answers `POST /detect` as the library does (the CPU
+/// backend builds the HOG pyramid beside the learned one), and `GET
+/// /models` names the segmenter's cells, both as openapi.yaml says.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_model_with_a_segmenter_is_served_as_the_library_answers() {
+    use sdhop::pipeline::{detect_image, DetectOptions, MaskMode};
+    use sdhop::synth::{hand_model, HandModelParams};
+    use sdhop::vision::cells::FeatureKind;
+    let spec = spec();
+    let hog = hand_model(&OBJECT, "synthetic", true, &HandModelParams::default()).unwrap();
+    let mut finder = hog.clone();
+    finder.meta.pyramid.features = FeatureKind::Cnn;
+    finder.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    finder.meta.detection.threshold = -1e6;
+    let paired = finder.with_segmenter(hog).unwrap();
+    let dir = std::env::temp_dir().join(format!("sdhop-segmenter-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    paired.save(&dir.join("synthetic.safetensors")).unwrap();
+    let registry = Registry::new();
+    let metrics = InferMetrics::new(&registry).unwrap();
+    let infer = Infer::start(Box::new(CpuBackend), InferConfig::default(), metrics).unwrap();
+    let state = AppState::new(
+        infer,
+        load_models(&dir).unwrap(),
+        HttpConfig::default(),
+        registry,
+    )
+    .unwrap();
+    warm_up(&state).await.unwrap();
+    let app = sdhop::http::router(Arc::clone(&state));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let base = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(listener, app).await });
+    let c = reqwest::Client::new();
+    let r = c.get(format!("{base}/models")).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let body = r.bytes().await.unwrap();
+    check_schema(&spec, "/models", "get", 200, "application/json", &body);
+    let models: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(models[0]["features"], "cnn");
+    assert_eq!(models[0]["segmenter_features"], "hog");
+    let png = encode(&synthetic_scene(3, 320, 240), image::ImageFormat::Png);
+    // The library sees the pixels the service decodes.
+    let decoded = image::load_from_memory(&png).unwrap().to_rgb8();
+    let img = sdhop::vision::image::ColorImage::from_rgb8(&decoded).unwrap();
+    let r = c
+        .post(format!("{base}/detect?max_detections=3&masks=both"))
+        .header(CONTENT_TYPE, "image/png")
+        .body(png)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let body = r.bytes().await.unwrap();
+    check_schema(&spec, "/detect", "post", 200, "application/json", &body);
+    let served: Value = serde_json::from_slice(&body).unwrap();
+    let opts = DetectOptions {
+        max_detections: Some(3),
+        masks: MaskMode::Both,
+        ..DetectOptions::default()
+    };
+    let want = detect_image(&img, &[&paired], &opts).unwrap();
+    let own = detect_image(&img, &[&paired.clone().without_segmenter()], &opts).unwrap();
+    assert!(
+        want.detections
+            .iter()
+            .zip(&own.detections)
+            .any(|(a, b)| a.mask != b.mask),
+        "the segmenter changes some mask"
+    );
+    let dets = served["detections"].as_array().unwrap();
+    assert_eq!(dets.len(), 3);
+    for (got, want) in dets.iter().zip(&want.detections) {
+        assert_eq!(got["score"].as_f64(), Some(want.score));
+        assert_eq!(got["mask"], serde_json::to_value(&want.mask).unwrap());
+        assert_eq!(
+            got["raw_mask"],
+            serde_json::to_value(&want.raw_mask).unwrap()
+        );
+    }
+    assert!(state.infer.shutdown(Duration::from_secs(10)).await);
+    std::fs::remove_dir_all(&dir).ok();
+}
