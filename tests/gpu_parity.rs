@@ -402,7 +402,15 @@ fn detect_through(
 #[ignore = "needs a Vulkan adapter"]
 fn detections_of_both_backends_agree() {
     let mut gpu = gpu();
-    let models = models();
+    let mut models = models();
+    // Both kinds per object: learned cells find, a HOG segmenter places
+    // and segments (its pyramid shares the segmentation on both paths).
+    let hp = HandModelParams::default();
+    let mut finder = hand_model(&OBJECT, "paired", true, &hp).unwrap();
+    finder.meta.pyramid.features = FeatureKind::Cnn;
+    finder.meta.cells = FeatureKind::Cnn.fingerprint().unwrap();
+    let segmenter = hand_model(&OBJECT, "paired", true, &hp).unwrap();
+    models.push(finder.with_segmenter(segmenter).unwrap());
     let refs: Vec<&Model> = models.iter().collect();
     let opts = DetectOptions {
         masks: MaskMode::Both,

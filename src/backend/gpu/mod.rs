@@ -733,16 +733,30 @@ impl Backend for GpuBackend {
         let mut work: Vec<(&ColorImage, PyramidParams)> = Vec::new();
         let mut learned: Vec<(&ColorImage, PyramidParams, Deadline)> = Vec::new();
         let mut segs: Vec<(&ColorImage, SegmentParams, Deadline)> = Vec::new();
+        // Each job's settings' segmentations (an index into `segs`): one per
+        // distinct segmentation setting of the job, shared by its pyramids
+        // (a model's and its segmenter's).
+        let mut seg_of: Vec<Vec<usize>> = Vec::with_capacity(batch.len());
         for (j, ok) in batch.iter().zip(&checked) {
+            let mut of = Vec::new();
             if ok.is_ok() {
+                let first = segs.len();
                 for (p, s) in j.settings {
                     match p.features {
                         FeatureKind::Hog => work.push((j.image.as_ref(), *p)),
                         FeatureKind::Cnn => learned.push((j.image.as_ref(), *p, j.deadline)),
                     }
-                    segs.push((j.image.as_ref(), *s, j.deadline));
+                    let shared = segs[first..].iter().position(|(_, t, _)| t == s);
+                    of.push(match shared {
+                        Some(i) => first + i,
+                        None => {
+                            segs.push((j.image.as_ref(), *s, j.deadline));
+                            segs.len() - 1
+                        }
+                    });
                 }
             }
+            seg_of.push(of);
         }
         let (features, segmentations) = rayon::join(
             || {
@@ -809,16 +823,16 @@ impl Backend for GpuBackend {
         };
         let mut hogs = hogs.into_iter();
         let mut learned = learned.into_iter();
-        let mut segmentations = segmentations.into_iter();
+        let mut used = vec![false; segmentations.len()];
         let mut out = Vec::with_capacity(batch.len());
-        for (j, ok) in batch.iter().zip(checked) {
+        for ((j, ok), of) in batch.iter().zip(checked).zip(&seg_of) {
             if let Err(e) = ok {
                 out.push(Err(BackendError::from(e)));
                 continue;
             }
             let mut pyrs = Vec::with_capacity(j.settings.len());
             let mut failed = None;
-            for (p, s) in j.settings {
+            for ((p, s), &si) in j.settings.iter().zip(of) {
                 let (hog, features_ms) = match p.features {
                     FeatureKind::Hog => (hogs.next().unwrap_or_default(), gpu_ms),
                     FeatureKind::Cnn => match learned.next() {
@@ -830,19 +844,21 @@ impl Backend for GpuBackend {
                         None => (Vec::new(), 0.0),
                     },
                 };
-                match segmentations.next() {
+                // A shared segmentation's time counts once.
+                let first_use = !std::mem::replace(&mut used[si], true);
+                match segmentations.get(si) {
                     Some(Ok((seg, seg_ms))) => {
                         let timing = PyramidTiming {
                             features_ms,
-                            segmentation_ms: seg_ms,
+                            segmentation_ms: if first_use { *seg_ms } else { 0.0 },
                             cell_segments_ms: 0.0,
                             total_ms: 0.0,
                         };
-                        let mut pyr = assemble(j.image, p, s, hog, seg, timing);
+                        let mut pyr = assemble(j.image, p, s, hog, seg.clone(), timing);
                         pyr.timing.total_ms = start.elapsed().as_secs_f64() * 1e3;
                         pyrs.push(pyr);
                     }
-                    Some(Err(e)) => failed = Some(BackendError::from(e)),
+                    Some(Err(e)) => failed = Some(BackendError::from(e.clone())),
                     None => failed = Some(BackendError::DeviceLost("missing segmentation".into())),
                 }
             }
