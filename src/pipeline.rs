@@ -399,12 +399,13 @@ impl<'a> Scanned<'a> {
     fn masks(&self, d: &Detection) -> Result<(Mask, Mask, f64), VisionError> {
         if let Some((seg, pyr)) = self.segmenter {
             let p = &seg.meta.detection;
-            let near = Detector::new(&seg.views)?.best_near(
+            let near = Detector::new(&seg.views)?.best_near_until(
                 pyr,
                 d.bbox,
                 SEGMENTER_MIN_IOU,
                 p.max_truncation,
-            );
+                self.params.deadline,
+            )?;
             if let Some(n) = near {
                 let shape = seg.shapes.get(n.viewpoint).and_then(Option::as_ref);
                 let (raw, refined) = detection_masks(&n, pyr, &p.refine, shape);

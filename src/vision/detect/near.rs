@@ -21,6 +21,21 @@ impl Detector<'_> {
         min_iou: f64,
         max_truncation: f64,
     ) -> Option<Detection> {
+        self.best_near_until(pyr, target, min_iou, max_truncation, Deadline::NONE)
+            .unwrap_or(None)
+    }
+
+    /// [`Self::best_near`] that gives up with
+    /// [`VisionError::DeadlineExceeded`] once `deadline` has passed (looked
+    /// at every few locations), as a request's masks must.
+    pub fn best_near_until(
+        &self,
+        pyr: &FeaturePyramid,
+        target: (f64, f64, f64, f64),
+        min_iou: f64,
+        max_truncation: f64,
+        deadline: Deadline,
+    ) -> Result<Option<Detection>, VisionError> {
         let mut near: Vec<(f64, Candidate)> = Vec::new();
         for (level, lv) in pyr.levels.iter().enumerate() {
             let (mw, mh) = (lv.hog.width() as isize, lv.hog.height() as isize);
@@ -79,7 +94,10 @@ impl Detector<'_> {
         });
         let mut s = Scratch::default();
         let mut best: Option<Solved> = None;
-        for (_, cand) in near {
+        for (i, (_, cand)) in near.into_iter().enumerate() {
+            if i % 16 == 0 && deadline.passed() {
+                return Err(VisionError::DeadlineExceeded);
+            }
             let cut = best.as_ref().map_or(f64::INFINITY, |b| b.energy);
             if let Some(r) = self.solve(pyr, &cand, cut, best.is_some(), None, &mut s) {
                 if best.as_ref().is_none_or(|b| r.energy < b.energy) {
@@ -87,7 +105,7 @@ impl Detector<'_> {
                 }
             }
         }
-        best.map(|b| self.detection_of(pyr, b))
+        Ok(best.map(|b| self.detection_of(pyr, b)))
     }
 }
 
@@ -159,5 +177,11 @@ mod tests {
             }
         }
         assert!(some >= 4, "{some}");
+        // A passed deadline: refused, not answered late.
+        let passed = Deadline::at(std::time::Instant::now());
+        assert_eq!(
+            det.best_near_until(&pyr, top.bbox, 0.5, params.max_truncation, passed),
+            Err(VisionError::DeadlineExceeded)
+        );
     }
 }
