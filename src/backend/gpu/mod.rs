@@ -699,6 +699,51 @@ impl GpuBackend {
     }
 }
 
+/// What a batch asks of the device and the CPU: each setting's HOG or
+/// learned cells, and each job's segmentations, one per distinct
+/// segmentation setting of the job (a model's and its segmenter's
+/// pyramids share one).
+struct Plan<'a> {
+    work: Vec<(&'a ColorImage, PyramidParams)>,
+    learned: Vec<(&'a ColorImage, PyramidParams, Deadline)>,
+    segs: Vec<(&'a ColorImage, SegmentParams, Deadline)>,
+    /// For each job, each setting's index into `segs`.
+    seg_of: Vec<Vec<usize>>,
+}
+
+impl<'a> Plan<'a> {
+    fn of(batch: &'a [FeatureJob<'_>], checked: &[Result<(), VisionError>]) -> Self {
+        let mut p = Plan {
+            work: Vec::new(),
+            learned: Vec::new(),
+            segs: Vec::new(),
+            seg_of: Vec::with_capacity(batch.len()),
+        };
+        for (j, ok) in batch.iter().zip(checked) {
+            let mut of = Vec::new();
+            if ok.is_ok() {
+                let first = p.segs.len();
+                for (q, s) in j.settings {
+                    match q.features {
+                        FeatureKind::Hog => p.work.push((j.image.as_ref(), *q)),
+                        FeatureKind::Cnn => p.learned.push((j.image.as_ref(), *q, j.deadline)),
+                    }
+                    let shared = p.segs[first..].iter().position(|(_, t, _)| t == s);
+                    of.push(match shared {
+                        Some(i) => first + i,
+                        None => {
+                            p.segs.push((j.image.as_ref(), *s, j.deadline));
+                            p.segs.len() - 1
+                        }
+                    });
+                }
+            }
+            p.seg_of.push(of);
+        }
+        p
+    }
+}
+
 impl Backend for GpuBackend {
     fn info(&self) -> BackendInfo {
         let mut device = self.adapter.to_string();
@@ -730,34 +775,12 @@ impl Backend for GpuBackend {
         // HOG cells and learned cells on the device (learned cells left to
         // the CPU where the device cannot take them), the segmentations on
         // the CPU meanwhile.
-        let mut work: Vec<(&ColorImage, PyramidParams)> = Vec::new();
-        let mut learned: Vec<(&ColorImage, PyramidParams, Deadline)> = Vec::new();
-        let mut segs: Vec<(&ColorImage, SegmentParams, Deadline)> = Vec::new();
-        // Each job's settings' segmentations (an index into `segs`): one per
-        // distinct segmentation setting of the job, shared by its pyramids
-        // (a model's and its segmenter's).
-        let mut seg_of: Vec<Vec<usize>> = Vec::with_capacity(batch.len());
-        for (j, ok) in batch.iter().zip(&checked) {
-            let mut of = Vec::new();
-            if ok.is_ok() {
-                let first = segs.len();
-                for (p, s) in j.settings {
-                    match p.features {
-                        FeatureKind::Hog => work.push((j.image.as_ref(), *p)),
-                        FeatureKind::Cnn => learned.push((j.image.as_ref(), *p, j.deadline)),
-                    }
-                    let shared = segs[first..].iter().position(|(_, t, _)| t == s);
-                    of.push(match shared {
-                        Some(i) => first + i,
-                        None => {
-                            segs.push((j.image.as_ref(), *s, j.deadline));
-                            segs.len() - 1
-                        }
-                    });
-                }
-            }
-            seg_of.push(of);
-        }
+        let Plan {
+            work,
+            learned,
+            segs,
+            seg_of,
+        } = Plan::of(batch, &checked);
         let (features, segmentations) = rayon::join(
             || {
                 let t = Instant::now();
