@@ -60,8 +60,8 @@ pub struct TrainSettings {
     pub segmenter: Option<FeatureKind>,
     /// Pyramid levels per octave (default 10). Learned cells trained and
     /// scanned at 5 cost half: eight models 1.2x HOG's eight instead of
-    /// 2x, for 0.003 AUC on four objects' folds (docs/training.md, "Fewer
-    /// levels, trained so").
+    /// 2x, for 0.003 cross-object AUC on the eight objects' folds
+    /// (docs/training.md, "Fewer levels, trained so").
     #[arg(long)]
     pub levels_per_octave: Option<u32>,
     /// Every how many pyramid levels the cells are computed from pixels,
