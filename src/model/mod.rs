@@ -598,6 +598,20 @@ pub fn with_segmenters(
         .collect()
 }
 
+/// [`with_segmenters`] of models that travel with something each (a
+/// training report): each keeps its own.
+pub fn with_segmenters_kept<R, S>(
+    models: Vec<(Model, R)>,
+    segmenters: Vec<(Model, S)>,
+) -> Result<Vec<(Model, R)>, ModelError> {
+    let (models, kept): (Vec<Model>, Vec<R>) = models.into_iter().unzip();
+    let segs = segmenters.into_iter().map(|(m, _)| m).collect();
+    Ok(with_segmenters(models, segs)?
+        .into_iter()
+        .zip(kept)
+        .collect())
+}
+
 /// The `*.safetensors` files of a folder, sorted by name.
 pub fn model_paths(dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>, ModelError> {
     let mut found: Vec<std::path::PathBuf> = std::fs::read_dir(dir)

@@ -509,12 +509,7 @@ fn fold_models(
     let mut trained = train_objects(data, Some(fold), params, neg, cache)?;
     if let Some((sp, seg_cache)) = segmenter {
         let segs = train_objects(data, Some(fold), sp, neg, seg_cache)?;
-        let (models, reports): (Vec<Model>, Vec<TrainReport>) = trained.into_iter().unzip();
-        let segs = segs.into_iter().map(|(m, _)| m).collect();
-        trained = crate::model::with_segmenters(models, segs)?
-            .into_iter()
-            .zip(reports)
-            .collect();
+        trained = crate::model::with_segmenters_kept(trained, segs)?;
     }
     if let FoldModels::TrainAndSave(dir) = source {
         let d = fold_dir(dir, fold.0);

@@ -157,23 +157,12 @@ pub fn train_ko8(
             mv,
             &PyramidCache::default(),
         )?;
-        out = paired(out, segs)?;
+        out = crate::model::with_segmenters_kept(out, segs).map_err(RouteError::input)?;
     }
     for (m, _) in &mut out {
         record_negatives(m, &neg)?;
     }
     Ok(out)
-}
-
-/// Each model with the segmenter of its object.
-fn paired(
-    models: Vec<(Model, TrainReport)>,
-    segmenters: Vec<(Model, TrainReport)>,
-) -> Result<Vec<(Model, TrainReport)>, RouteError> {
-    let (models, reports): (Vec<Model>, Vec<TrainReport>) = models.into_iter().unzip();
-    let segs = segmenters.into_iter().map(|(m, _)| m).collect();
-    let models = crate::model::with_segmenters(models, segs).map_err(RouteError::input)?;
-    Ok(models.into_iter().zip(reports).collect())
 }
 
 /// Trains the route's objects on loaded data with `params`.
