@@ -98,7 +98,8 @@ pub fn cross_validate_route(
     settings: &TrainSettings,
     mut each: impl FnMut(&CResult),
 ) -> Result<CvOutcome, RouteError> {
-    let (mut params, neg) = settings.params(CV_FEATURES)?;
+    let (params, neg) = settings.params(CV_FEATURES)?;
+    let mut params = super::ko8::ko8_levels(params, settings);
     let seg_params = settings.segmenter_params(&params)?;
     if s.folds < 2 {
         return Err(RouteError::input("--folds must be at least 2"));

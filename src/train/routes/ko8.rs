@@ -14,7 +14,9 @@ use std::path::PathBuf;
 
 /// The cells of the CMU_KO8 routes unless the settings name others: HOG,
 /// which the shipped models use (learned cells find slightly more on the
-/// cross-validation folds at eight times the scan's cost).
+/// cross-validation folds; eight of them scan in 1.2x the eight HOG
+/// models' time at [`KO8_LEARNED_LEVELS_PER_OCTAVE`], and one in 2.6x
+/// one HOG model's on one thread).
 pub const KO8_FEATURES: FeatureKind = FeatureKind::Hog;
 
 /// Cutting-plane iterations over the cached locations per full search
@@ -33,6 +35,32 @@ pub const VIEWS_MAX_INNER: usize = 100;
 /// Full searches at most of the routes that train from views (see
 /// [`VIEWS_MAX_INNER`]); the saucepan converged after 6-8.
 pub const VIEWS_MAX_PASSES: usize = 10;
+
+/// Pyramid levels per octave of learned-cell models on the CMU_KO8 routes
+/// (`train --ko8`, `cv`) where neither `--levels-per-octave` nor a
+/// `--config` file sets them (HOG keeps [`PyramidParams`]'s 10). Learned
+/// cells trained and scanned at 5 compute half the backbone and half the
+/// responses: eight such models took 1.15-1.20x the eight HOG models'
+/// time on two threads, against 1.97-2.07x at 10. On the eight objects'
+/// five folds, two training seeds, they cost docs/training.md's "Fewer
+/// levels, trained so" figures in cross-object AUC.
+///
+/// [`PyramidParams`]: crate::vision::pyramid::PyramidParams
+pub const KO8_LEARNED_LEVELS_PER_OCTAVE: u32 = 5;
+
+/// `params` with [`KO8_LEARNED_LEVELS_PER_OCTAVE`] where its cells are
+/// learned and `settings` leave the levels open.
+pub fn ko8_levels(
+    params: crate::train::TrainParams,
+    settings: &TrainSettings,
+) -> crate::train::TrainParams {
+    let mut p = params;
+    let open = settings.levels_per_octave.is_none() && settings.config.is_none();
+    if open && p.pyramid.features == FeatureKind::Cnn {
+        p.pyramid.levels_per_octave = KO8_LEARNED_LEVELS_PER_OCTAVE;
+    }
+    p
+}
 
 /// `params` with the views route's passes where `settings` leave them open.
 fn views_params(
@@ -97,6 +125,7 @@ pub fn train_ko8(
     mv: &MultiViewParams,
 ) -> Result<Vec<(Model, TrainReport)>, RouteError> {
     let (params, neg) = settings.params(KO8_FEATURES)?;
+    let params = ko8_levels(params, settings);
     let cache = PyramidCache::default();
     let root = &route.root;
     // Views and boxes load every object: the others' views are occluders.
@@ -205,4 +234,37 @@ fn train_data(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::train::TrainParams;
+
+    #[test]
+    fn learned_cells_get_five_levels_unless_the_settings_name_them() {
+        let learned = |lpo: Option<u32>, config: Option<PathBuf>| {
+            let settings = TrainSettings {
+                levels_per_octave: lpo,
+                config,
+                ..TrainSettings::default()
+            };
+            let mut p = TrainParams::default();
+            p.pyramid.features = FeatureKind::Cnn;
+            if let Some(l) = lpo {
+                p.pyramid.levels_per_octave = l;
+            }
+            ko8_levels(p, &settings).pyramid.levels_per_octave
+        };
+        assert_eq!(learned(None, None), KO8_LEARNED_LEVELS_PER_OCTAVE);
+        assert_eq!(learned(Some(10), None), 10);
+        assert_eq!(learned(Some(3), None), 3);
+        // A config file's pyramid is its own (its default included).
+        let default = TrainParams::default().pyramid.levels_per_octave;
+        assert_eq!(learned(None, Some(PathBuf::from("c.json"))), default);
+        // HOG keeps the default.
+        let hog = ko8_levels(TrainParams::default(), &TrainSettings::default());
+        assert_eq!(hog.pyramid.levels_per_octave, default);
+        assert_eq!(default, 10);
+    }
 }

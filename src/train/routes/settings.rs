@@ -58,10 +58,11 @@ pub struct TrainSettings {
     /// and detection its pyramid and a local search per answered detection.
     #[arg(long, value_parser = FeatureKind::parse)]
     pub segmenter: Option<FeatureKind>,
-    /// Pyramid levels per octave (default 10). Learned cells trained and
-    /// scanned at 5 cost half: eight models 1.2x HOG's eight instead of
-    /// 2x, for 0.003 cross-object AUC on the eight objects' folds
-    /// (docs/training.md, "Fewer levels, trained so").
+    /// Pyramid levels per octave (default 10; learned cells on the
+    /// CMU_KO8 routes `train --ko8` and `cv`: 5, which costs half: eight
+    /// models 1.2x HOG's eight instead of 2x, for a few thousandths of
+    /// cross-object AUC on the eight objects' folds; docs/training.md,
+    /// "Fewer levels, trained so").
     #[arg(long)]
     pub levels_per_octave: Option<u32>,
     /// Every how many pyramid levels the cells are computed from pixels,
