@@ -14,9 +14,9 @@ use std::path::PathBuf;
 
 /// The cells of the CMU_KO8 routes unless the settings name others: HOG,
 /// which the shipped models use (learned cells find slightly more on the
-/// cross-validation folds; eight of them scan in 1.2x the eight HOG
-/// models' time at [`KO8_LEARNED_LEVELS_PER_OCTAVE`], and one in 2.6x
-/// one HOG model's on one thread).
+/// cross-validation folds; eight of them scan in 1.14-1.20x the eight
+/// HOG models' time at [`KO8_LEARNED_LEVELS_PER_OCTAVE`], and one in
+/// 2.7x one HOG model's on one thread).
 pub const KO8_FEATURES: FeatureKind = FeatureKind::Hog;
 
 /// Cutting-plane iterations over the cached locations per full search
@@ -40,8 +40,9 @@ pub const VIEWS_MAX_PASSES: usize = 10;
 /// (`train --ko8`, `cv`) where neither `--levels-per-octave` nor a
 /// `--config` file sets them (HOG keeps [`PyramidParams`]'s 10). Learned
 /// cells trained and scanned at 5 compute half the backbone and half the
-/// responses: eight such models took 1.15-1.20x the eight HOG models'
-/// time on two threads, against 1.97-2.07x at 10. On the eight objects'
+/// responses: eight such models took 1.14-1.20x the eight HOG models'
+/// time on two threads, against 1.97-2.07x at 10 (docs/benchmarks.md,
+/// 2026-11-30). On the eight objects'
 /// five folds, two training seeds, they cost docs/training.md's "Fewer
 /// levels, trained so" figures in cross-object AUC.
 ///
